@@ -1,0 +1,13 @@
+import os
+
+from sb3_pevfa.common.callbacks import PolicyHistoryCallback
+from sb3_pevfa.common.history import PolicyHistory
+from sb3_pevfa.common.representations import REPRESENTATIONS
+from sb3_pevfa.ppo_pevfa import PPOPeVFA
+
+# Read version from file
+version_file = os.path.join(os.path.dirname(__file__), "version.txt")
+with open(version_file) as file_handler:
+    __version__ = file_handler.read().strip()
+
+__all__ = ["REPRESENTATIONS", "PPOPeVFA", "PolicyHistory", "PolicyHistoryCallback"]

@@ -1,0 +1,336 @@
+"""The policy history: raw data of every recorded policy, and a FIFO of (observation, value target, policy id)."""
+
+import json
+import os
+import pathlib
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
+
+from sb3_pevfa.common.policy_data import POLICY_FIELDS, state_dim
+
+#: Version of the file format written by :meth:`PolicyHistory.save`.
+HISTORY_FORMAT_VERSION = 1
+
+ObsBatch = np.ndarray | dict[str, np.ndarray]
+
+
+class _Ring:
+    """Named numpy arrays sharing one FIFO ring index; grows geometrically up to ``max_size`` rows."""
+
+    def __init__(self, specs: dict[str, tuple[tuple[int, ...], np.dtype]], max_size: int):
+        self.specs = specs
+        self.max_size = max_size
+        self.capacity = 0
+        self.start = 0
+        self.size = 0
+        self.arrays: dict[str, np.ndarray] = {name: np.zeros((0, *shape), dtype) for name, (shape, dtype) in specs.items()}
+
+    def positions(self, logical: np.ndarray) -> np.ndarray:
+        """Storage positions of logical indices (0 is the oldest row)."""
+        return (self.start + logical) % max(self.capacity, 1)
+
+    def _grow(self, needed: int) -> None:
+        new_capacity = min(self.max_size, max(2 * self.capacity, needed, 1024))
+        order = self.positions(np.arange(self.size))
+        for name, (shape, dtype) in self.specs.items():
+            array = np.zeros((new_capacity, *shape), dtype)
+            array[: self.size] = self.arrays[name][order]
+            self.arrays[name] = array
+        self.capacity, self.start = new_capacity, 0
+
+    def drop_front(self, n: int) -> dict[str, np.ndarray]:
+        """Remove the ``n`` oldest rows and return them."""
+        n = min(n, self.size)
+        dropped = self.get(np.arange(n))
+        self.start = (self.start + n) % max(self.capacity, 1)
+        self.size -= n
+        return dropped
+
+    def append(self, rows: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Append rows (keeping the newest ``max_size``); returns the rows evicted to make room."""
+        n = len(next(iter(rows.values())))
+        if n > self.max_size:
+            rows = {name: array[-self.max_size :] for name, array in rows.items()}
+            n = self.max_size
+        evicted = self.drop_front(self.size + n - self.max_size) if self.size + n > self.max_size else {}
+        if self.size + n > self.capacity:
+            self._grow(self.size + n)
+        where = self.positions(np.arange(self.size, self.size + n))
+        for name, array in rows.items():
+            self.arrays[name][where] = array
+        self.size += n
+        return evicted
+
+    def get(self, logical: np.ndarray) -> dict[str, np.ndarray]:
+        where = self.positions(logical)
+        return {name: array[where] for name, array in self.arrays.items()}
+
+    @property
+    def nbytes(self) -> int:
+        return sum(array.nbytes for array in self.arrays.values())
+
+
+class PolicyHistory:
+    """History of policies for PeVFA (paper Algorithm 2).
+
+    Per policy its raw data (flat actor parameters, state-action pairs, random code) is kept, never an
+    embedding: embeddings are recomputed by the current encoder whenever they are needed. Beside it, a FIFO of
+    ``(observation, value target, policy id)`` samples, bounded by ``buffer_size`` samples and, through the
+    policies it refers to, by ``max_policies``. Evicting a policy evicts its samples (always the oldest).
+
+    :param observation_space: Observation space (Dict spaces are stored key by key)
+    :param action_space: Action space
+    :param n_params: Size of the flat actor parameter vector
+    :param n_state_action_pairs: State-action pairs recorded per policy (0 for none)
+    :param code_dim: Size of the random code per policy (0 unless ``random`` representation)
+    :param buffer_size: Maximum number of samples (paper: 200k)
+    :param max_policies: Maximum number of policies kept
+    :param seed: Seed of the sampling RNG (the model passes its own seed)
+    :param representation: Name of the representation this history feeds (checked on load)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        n_params: int,
+        n_state_action_pairs: int = 200,
+        code_dim: int = 0,
+        buffer_size: int = 200_000,
+        max_policies: int = 10_000,
+        seed: int | None = None,
+        representation: str | None = None,
+    ):
+        for name, value in (("buffer_size", buffer_size), ("max_policies", max_policies)):
+            if not isinstance(value, (int, np.integer)) or value <= 0:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if n_state_action_pairs < 0 or code_dim < 0:
+            raise ValueError("n_state_action_pairs and code_dim must be >= 0")
+        self.observation_space = observation_space
+        self.action_space = action_space
+        self.n_params = int(n_params)
+        self.n_state_action_pairs = int(n_state_action_pairs)
+        self.code_dim = int(code_dim)
+        self.buffer_size = int(buffer_size)
+        self.max_policies = int(max_policies)
+        self.representation = representation
+        self.rng = np.random.default_rng(seed)
+        self._obs_keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
+        self.reset()
+
+    # ------------------------------------------------------------------ construction
+    def _obs_specs(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        def spec(space: spaces.Space) -> tuple[tuple[int, ...], np.dtype]:
+            dtype = space.dtype if isinstance(space, spaces.Box) else np.dtype(np.float32)
+            return get_obs_shape(space), np.dtype(dtype)
+
+        if self._obs_keys is None:
+            return {"obs": spec(self.observation_space)}
+        return {f"obs/{key}": spec(self.observation_space.spaces[key]) for key in self._obs_keys}
+
+    def reset(self) -> None:
+        """Forget every policy and sample."""
+        specs = self._obs_specs()
+        specs["targets"] = ((), np.dtype(np.float32))
+        specs["policy_ids"] = ((), np.dtype(np.int64))
+        self._samples = _Ring(specs, self.buffer_size)
+        self._policies: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
+        self._policy_info: dict[int, dict[str, int]] = {}
+        self._sample_counts: dict[int, int] = {}
+        self._next_id = 0
+
+    @property
+    def signature(self) -> dict[str, Any]:
+        """What a saved history must match to be loaded into this one."""
+        return {
+            "observation_shapes": {name: list(shape) for name, (shape, _) in self._obs_specs().items()},
+            "state_dim": state_dim(self.observation_space),
+            "action_dim": get_action_dim(self.action_space),
+            "action_space": type(self.action_space).__name__,
+            "n_params": self.n_params,
+            "n_state_action_pairs": self.n_state_action_pairs,
+            "code_dim": self.code_dim,
+            "representation": self.representation,
+        }
+
+    # ------------------------------------------------------------------ policies
+    @property
+    def n_policies(self) -> int:
+        return len(self._policies)
+
+    @property
+    def policy_ids(self) -> list[int]:
+        return list(self._policies)
+
+    @property
+    def latest_policy_id(self) -> int | None:
+        return next(reversed(self._policies)) if self._policies else None
+
+    def policy_info(self, policy_id: int) -> dict[str, int]:
+        """``n_updates`` and ``num_timesteps`` of the model when the policy was recorded."""
+        return dict(self._policy_info[policy_id])
+
+    def add_policy(self, record: dict[str, np.ndarray], n_updates: int = 0, num_timesteps: int = 0) -> int:
+        """Store one policy's raw data (see :func:`~sb3_pevfa.common.policy_data.snapshot_policy`); returns its id."""
+        expected = {
+            "params": (self.n_params,),
+            "states": (self.n_state_action_pairs, state_dim(self.observation_space)),
+            "actions": (self.n_state_action_pairs, get_action_dim(self.action_space)),
+            "codes": (self.code_dim,),
+        }
+        for name in POLICY_FIELDS:
+            if tuple(record[name].shape) != expected[name]:
+                raise ValueError(f"Policy record field {name!r} has shape {record[name].shape}, expected {expected[name]}")
+        policy_id = self._next_id
+        self._next_id += 1
+        self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in POLICY_FIELDS}
+        self._policy_info[policy_id] = {"n_updates": int(n_updates), "num_timesteps": int(num_timesteps)}
+        self._sample_counts[policy_id] = 0
+        while len(self._policies) > self.max_policies:
+            oldest = next(iter(self._policies))
+            self._forget_samples(self._samples.drop_front(self._sample_counts[oldest]))
+            del self._policies[oldest], self._policy_info[oldest], self._sample_counts[oldest]
+        return policy_id
+
+    def policy_data(self, policy_ids: np.ndarray | list[int]) -> dict[str, np.ndarray]:
+        """Stacked raw data of the given policies: ``{field: (P, ...)}``."""
+        records = [self._policies[int(pid)] for pid in policy_ids]
+        return {name: np.stack([record[name] for record in records]) for name in POLICY_FIELDS}
+
+    # ------------------------------------------------------------------ samples
+    @property
+    def n_samples(self) -> int:
+        return self._samples.size
+
+    def _forget_samples(self, dropped: dict[str, np.ndarray]) -> None:
+        if not dropped:
+            return
+        ids, counts = np.unique(dropped["policy_ids"], return_counts=True)
+        for policy_id, count in zip(ids.tolist(), counts.tolist()):
+            self._sample_counts[policy_id] -= count
+
+    def add_samples(self, observations: ObsBatch, targets: np.ndarray, policy_id: int) -> None:
+        """Append samples of one policy. Observations have a leading batch axis (any extra leading axes are flattened)."""
+        if policy_id not in self._policies:
+            raise KeyError(f"Unknown policy id {policy_id}: record the policy first")
+        if policy_id != self.latest_policy_id:
+            raise ValueError("Samples must come from the latest recorded policy (the FIFO is ordered by policy)")
+        targets = np.asarray(targets, dtype=np.float32).reshape(-1)
+        rows: dict[str, np.ndarray] = {}
+        for name, (shape, dtype) in self._obs_specs().items():
+            array = observations if self._obs_keys is None else observations[name.split("/", 1)[1]]
+            rows[name] = np.asarray(array).reshape(-1, *shape).astype(dtype, copy=False)
+            if len(rows[name]) != len(targets):
+                raise ValueError(f"{len(rows[name])} observations for {len(targets)} targets")
+        rows["targets"] = targets
+        rows["policy_ids"] = np.full(len(targets), policy_id, dtype=np.int64)
+        self._forget_samples(self._samples.append(rows))
+        self._sample_counts[policy_id] += min(len(targets), self.buffer_size)
+
+    def _observations(self, rows: dict[str, np.ndarray]) -> ObsBatch:
+        if self._obs_keys is None:
+            return rows["obs"]
+        return {key: rows[f"obs/{key}"] for key in self._obs_keys}
+
+    def sample(self, batch_size: int, exclude_policy: int | None = None) -> tuple[ObsBatch, np.ndarray, np.ndarray] | None:
+        """Uniform mini-batch ``(observations, targets, policy_ids)``, or None when no sample is eligible.
+
+        :param exclude_policy: The latest policy, whose samples are left out (Algorithm 2 trains on
+            policies 0..t-1 here; the current one has its own on-policy update)
+        """
+        n_valid = self._samples.size
+        if exclude_policy is not None and exclude_policy == self.latest_policy_id:
+            n_valid -= self._sample_counts[exclude_policy]
+        if n_valid <= 0:
+            return None
+        rows = self._samples.get(self.rng.integers(n_valid, size=batch_size))
+        return self._observations(rows), rows["targets"], rows["policy_ids"]
+
+    def sample_observations(self, n: int) -> ObsBatch | None:
+        """``n`` observations drawn uniformly from the FIFO (probe states of SPR), or None if it is empty."""
+        if self._samples.size == 0:
+            return None
+        return self._observations(self._samples.get(self.rng.integers(self._samples.size, size=n)))
+
+    def samples(self) -> tuple[ObsBatch, np.ndarray, np.ndarray]:
+        """All samples, oldest first: ``(observations, targets, policy_ids)``."""
+        rows = self._samples.get(np.arange(self._samples.size))
+        return self._observations(rows), rows["targets"], rows["policy_ids"]
+
+    # ------------------------------------------------------------------ bookkeeping
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the history, in bytes."""
+        policies = sum(array.nbytes for record in self._policies.values() for array in record.values())
+        return self._samples.nbytes + policies
+
+    def __len__(self) -> int:
+        return self.n_samples
+
+    def __repr__(self) -> str:
+        return (
+            f"PolicyHistory(policies={self.n_policies}/{self.max_policies}, samples={self.n_samples}/{self.buffer_size}, "
+            f"memory={self.nbytes / 2**20:.1f} MiB)"
+        )
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | pathlib.Path) -> None:
+        """Save to a ``.npz`` file (format version, signature, RNG state, policies and samples)."""
+        path = pathlib.Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(path.suffix + ".npz")
+        ids = self.policy_ids
+        meta = {
+            "format_version": HISTORY_FORMAT_VERSION,
+            "signature": self.signature,
+            "rng_state": self.rng.bit_generator.state,
+            "next_id": self._next_id,
+            "policy_ids": ids,
+            "policy_info": [self._policy_info[pid] for pid in ids],
+        }
+        arrays = {f"policy/{name}": array for name, array in self.policy_data(ids).items()} if ids else {}
+        arrays.update({f"sample/{name}": array for name, array in self._samples.get(np.arange(self.n_samples)).items()})
+        os.makedirs(path.parent, exist_ok=True)
+        np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
+
+    def load(self, path: str | pathlib.Path) -> "PolicyHistory":
+        """Load a history saved by :meth:`save` into this (empty or not) history; the file must match its signature.
+
+        This history's bounds apply: if the file holds more, the newest policies and samples are kept.
+        """
+        path = pathlib.Path(path)
+        if not path.exists() and path.with_suffix(path.suffix + ".npz").exists():
+            path = path.with_suffix(path.suffix + ".npz")
+        with np.load(path, allow_pickle=False) as archive:
+            meta = json.loads(str(archive["meta"]))
+            if meta.get("format_version") != HISTORY_FORMAT_VERSION:
+                raise ValueError(
+                    f"History file {path} has format version {meta.get('format_version')}, "
+                    f"this sb3-pevfa reads version {HISTORY_FORMAT_VERSION}"
+                )
+            mismatches = {
+                key: (meta["signature"].get(key), value)
+                for key, value in self.signature.items()
+                if meta["signature"].get(key) != value
+            }
+            if mismatches:
+                details = ", ".join(f"{key}: file has {found!r}, model expects {wanted!r}" for key, (found, wanted) in mismatches.items())
+                raise ValueError(f"History file {path} does not match this model ({details})")
+            arrays = {name: archive[name] for name in archive.files if name != "meta"}
+        self.reset()
+        ids = meta["policy_ids"]
+        for i, (policy_id, info) in enumerate(zip(ids, meta["policy_info"])):
+            self._next_id = policy_id
+            self.add_policy({name: arrays[f"policy/{name}"][i] for name in POLICY_FIELDS}, **info)
+            mask = arrays["sample/policy_ids"] == policy_id
+            if mask.any():
+                observations = {name: arrays[f"sample/{name}"][mask] for name in self._obs_specs()}
+                obs = observations["obs"] if self._obs_keys is None else {k: observations[f"obs/{k}"] for k in self._obs_keys}
+                self.add_samples(obs, arrays["sample/targets"][mask], policy_id)
+        self._next_id = meta["next_id"]
+        self.rng.bit_generator.state = meta["rng_state"]
+        return self

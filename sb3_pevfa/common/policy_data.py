@@ -1,0 +1,160 @@
+"""Raw data that describes one policy: its actor parameters, state-action pairs and (optional) random code."""
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import get_action_dim, is_image_space, preprocess_obs
+from stable_baselines3.common.utils import obs_as_tensor
+from torch import nn
+from torch.nn import functional as F
+
+#: Names of the fields of a policy record, in storage order.
+POLICY_FIELDS = ("params", "states", "actions", "codes")
+
+
+class PolicyData(NamedTuple):
+    """Batched raw data of ``P`` policies (torch tensors), the input of a policy representation.
+
+    :param params: Flat actor parameters, shape ``(P, n_params)`` (see :class:`ActorLayout`)
+    :param states: Flattened, preprocessed probe states, shape ``(P, n_pairs, state_dim)``
+    :param actions: Actions of each policy at its probe states, rollout-buffer layout ``(P, n_pairs, action_dim)``
+    :param codes: Fixed random codes (``random`` representation only), shape ``(P, code_dim)``
+    """
+
+    params: th.Tensor
+    states: th.Tensor
+    actions: th.Tensor
+    codes: th.Tensor
+
+    @classmethod
+    def from_numpy(cls, data: dict[str, np.ndarray], device: th.device | str = "cpu") -> "PolicyData":
+        return cls(*(th.as_tensor(data[name], device=device) for name in POLICY_FIELDS))
+
+
+@dataclass(frozen=True)
+class ActorLayout:
+    """How the actor's parameters are laid out in a flat parameter vector.
+
+    Every linear layer of the actor (``mlp_extractor.policy_net`` then ``action_net``) contributes its
+    matrix ``[W | b]`` of shape ``(out, in + 1)``, row-major: each row is one unit (an "operation" in the
+    paper's terms). The log standard deviation of Gaussian policies comes last.
+    Convolutional feature extractors are not part of the layout: for CNN policies only the MLP head is recorded.
+    """
+
+    linear_shapes: tuple[tuple[int, int], ...]
+    log_std_shape: tuple[int, ...]
+
+    @property
+    def log_std_numel(self) -> int:
+        return int(np.prod(self.log_std_shape)) if self.log_std_shape else 0
+
+    @property
+    def n_params(self) -> int:
+        return sum(out * (inp + 1) for out, inp in self.linear_shapes) + self.log_std_numel
+
+    @staticmethod
+    def linear_layers(policy: ActorCriticPolicy) -> list[nn.Linear]:
+        """The actor's linear layers, from input to output."""
+        for module in (policy.mlp_extractor.policy_net, policy.action_net):
+            for sub in module.modules():
+                if len(list(sub.parameters(recurse=False))) > 0 and not isinstance(sub, nn.Linear):
+                    raise TypeError(
+                        f"PeVFA records actors made of nn.Linear layers, found {type(sub).__name__} in the actor's head"
+                    )
+        layers = [m for m in policy.mlp_extractor.policy_net.modules() if isinstance(m, nn.Linear)]
+        if not isinstance(policy.action_net, nn.Linear):
+            raise TypeError(f"PeVFA expects `action_net` to be nn.Linear, got {type(policy.action_net).__name__}")
+        return [*layers, policy.action_net]
+
+    @classmethod
+    def from_policy(cls, policy: ActorCriticPolicy) -> "ActorLayout":
+        shapes = tuple((layer.out_features, layer.in_features) for layer in cls.linear_layers(policy))
+        log_std = getattr(policy, "log_std", None)
+        return cls(linear_shapes=shapes, log_std_shape=tuple(log_std.shape) if isinstance(log_std, th.Tensor) else ())
+
+    def flatten(self, policy: ActorCriticPolicy) -> th.Tensor:
+        """Flat copy (detached) of the actor's parameters, shape ``(n_params,)``."""
+        with th.no_grad():
+            parts = [
+                th.cat([layer.weight, layer.bias.unsqueeze(1)], dim=1).flatten() for layer in self.linear_layers(policy)
+            ]
+            if self.log_std_numel:
+                parts.append(policy.log_std.flatten())
+            return th.cat(parts).detach().clone()
+
+    def split(self, params: th.Tensor) -> tuple[list[th.Tensor], th.Tensor | None]:
+        """Views of batched flat parameters ``(P, n_params)``: per layer ``(P, out, in + 1)``, and log-std ``(P, k)``."""
+        rows, offset = [], 0
+        for out, inp in self.linear_shapes:
+            size = out * (inp + 1)
+            rows.append(params[:, offset : offset + size].reshape(-1, out, inp + 1))
+            offset += size
+        log_std = params[:, offset:] if self.log_std_numel else None
+        return rows, log_std
+
+
+def state_dim(observation_space: spaces.Space) -> int:
+    """Size of a flattened, preprocessed observation (one-hot for discrete spaces)."""
+    return int(spaces.utils.flatdim(observation_space))
+
+
+def has_image(observation_space: spaces.Space) -> bool:
+    if isinstance(observation_space, spaces.Dict):
+        return any(is_image_space(space) for space in observation_space.spaces.values())
+    return is_image_space(observation_space)
+
+
+def flatten_observations(obs: th.Tensor | dict[str, th.Tensor], observation_space: spaces.Space) -> th.Tensor:
+    """Preprocess (as the policy does) and flatten a batch of observations to ``(batch, state_dim)``."""
+    processed = preprocess_obs(obs, observation_space, normalize_images=True)
+    if isinstance(processed, dict):
+        return th.cat([processed[key].flatten(start_dim=1) for key in observation_space.spaces], dim=1)
+    return processed.flatten(start_dim=1)
+
+
+def encode_actions(actions: th.Tensor, action_space: spaces.Space) -> th.Tensor:
+    """Actions in rollout-buffer layout ``(..., action_dim)`` to network inputs (one-hot for discrete spaces)."""
+    if isinstance(action_space, spaces.Discrete):
+        return F.one_hot(actions[..., 0].long(), int(action_space.n)).float()
+    if isinstance(action_space, spaces.MultiDiscrete):
+        return th.cat(
+            [F.one_hot(actions[..., i].long(), int(n)).float() for i, n in enumerate(action_space.nvec)], dim=-1
+        )
+    return actions.float()
+
+
+def encoded_action_dim(action_space: spaces.Space) -> int:
+    if isinstance(action_space, spaces.Discrete):
+        return int(action_space.n)
+    if isinstance(action_space, spaces.MultiDiscrete):
+        return int(np.sum(action_space.nvec))
+    return get_action_dim(action_space)
+
+
+def snapshot_policy(
+    policy: ActorCriticPolicy,
+    layout: ActorLayout,
+    probe_obs: np.ndarray | dict[str, np.ndarray] | None,
+    code: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Record one policy: flat parameters, and actions sampled by the policy at ``probe_obs`` (SPR's pairs).
+
+    :param probe_obs: A batch of raw observations (as stored in a rollout buffer), or None for no pairs
+    :param code: The policy's random code (empty unless the ``random`` representation is used)
+    """
+    observation_space, action_space = policy.observation_space, policy.action_space
+    params = layout.flatten(policy).cpu().numpy().astype(np.float32)
+    if probe_obs is None:
+        states = np.zeros((0, state_dim(observation_space)), dtype=np.float32)
+        actions = np.zeros((0, get_action_dim(action_space)), dtype=np.float32)
+    else:
+        with th.no_grad():
+            obs_tensor = obs_as_tensor(probe_obs, policy.device)
+            sampled = policy.get_distribution(obs_tensor).get_actions(deterministic=False)
+            states = flatten_observations(obs_tensor, observation_space).cpu().numpy().astype(np.float32)
+        actions = sampled.reshape(len(states), -1).cpu().numpy().astype(np.float32)
+    return {"params": params, "states": states, "actions": actions, "codes": np.asarray(code, dtype=np.float32)}

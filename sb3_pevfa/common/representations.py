@@ -1,0 +1,224 @@
+"""Policy representations chi_pi: one interface, chosen by a string (see ``REPRESENTATIONS``)."""
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.torch_layers import create_mlp
+from torch import nn
+
+from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, encode_actions, encoded_action_dim, has_image, state_dim
+
+
+class PolicyRepresentation(nn.Module):
+    """Maps the raw data of ``P`` policies (:class:`PolicyData`) to embeddings of shape ``(P, embedding_dim)``.
+
+    Subclasses say which raw data they read, so the history stores what is needed.
+    """
+
+    #: Reads state-action pairs (SPR)
+    uses_state_action_pairs: bool = False
+    #: Reads a fixed random code per policy
+    uses_codes: bool = False
+
+    def __init__(self, embedding_dim: int):
+        super().__init__()
+        self.embedding_dim = embedding_dim
+
+    def forward(self, data: PolicyData) -> th.Tensor:
+        raise NotImplementedError
+
+
+def _mlp(input_dim: int, arch: tuple[int, ...], activation_fn: type[nn.Module]) -> nn.Sequential:
+    """Hidden layers with activations, then a linear output of size ``arch[-1]``."""
+    return nn.Sequential(*create_mlp(input_dim, arch[-1], list(arch[:-1]), activation_fn))
+
+
+class OriginPolicyRepresentation(PolicyRepresentation):
+    """OPR (paper Sec. 4, App. D.2): a permutation-invariant code of the actor's parameters.
+
+    Each linear layer is the unordered set of its rows ``[W_row | b]``; a per-layer MLP maps every row and the
+    mean over rows is the layer code. The layer codes (and a code of the log-std for Gaussian policies) are
+    concatenated and projected to ``embedding_dim``.
+
+    :param layout: The actor's parameter layout
+    :param embedding_dim: Size of chi
+    :param layer_arch: Per-row MLP (the last entry is the layer code size); authors: 32-32-16
+    :param log_std_arch: MLP of the log-std vector
+    """
+
+    def __init__(
+        self,
+        layout: ActorLayout,
+        embedding_dim: int = 64,
+        layer_arch: tuple[int, ...] = (32, 32, 16),
+        log_std_arch: tuple[int, ...] = (32, 16),
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ):
+        super().__init__(embedding_dim)
+        self.layout = layout
+        self.row_encoders = nn.ModuleList(_mlp(inp + 1, tuple(layer_arch), activation_fn) for _, inp in layout.linear_shapes)
+        code_dim = layer_arch[-1] * len(layout.linear_shapes)
+        self.log_std_encoder = None
+        if layout.log_std_numel:
+            self.log_std_encoder = _mlp(layout.log_std_numel, tuple(log_std_arch), activation_fn)
+            code_dim += log_std_arch[-1]
+        self.projection = nn.Linear(code_dim, embedding_dim)
+
+    def layer_codes(self, data: PolicyData, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+        """Concatenated layer (and log-std) codes, ``(P, code_dim)``.
+
+        :param row_weights: Optional per-layer ``(P, out)`` 0/1 weights of the rows to keep (augmentation);
+            the layer code is then the mean over the kept rows.
+        """
+        rows, log_std = self.layout.split(data.params)
+        codes = []
+        for i, (layer_rows, encoder) in enumerate(zip(rows, self.row_encoders)):
+            encoded = encoder(layer_rows)
+            if row_weights is None:
+                codes.append(encoded.mean(dim=1))
+            else:
+                weights = row_weights[i].unsqueeze(-1)
+                codes.append((encoded * weights).sum(dim=1) / weights.sum(dim=1).clamp(min=1.0))
+        if self.log_std_encoder is not None:
+            codes.append(self.log_std_encoder(log_std))
+        return th.cat(codes, dim=1)
+
+    def forward(self, data: PolicyData, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+        return self.projection(self.layer_codes(data, row_weights))
+
+
+class SurfacePolicyRepresentation(PolicyRepresentation):
+    """SPR (paper Sec. 4, App. D.2): mean-pooled MLP code of the policy's state-action pairs.
+
+    In training mode a random subset (``subsample``) of the pairs is kept at every call, as the authors do;
+    in evaluation mode all pairs are used, so predictions are deterministic.
+
+    :param pair_arch: MLP applied to every concatenated (state, action) pair
+    :param subsample: Fraction of the pairs kept at each training-mode call
+    """
+
+    uses_state_action_pairs = True
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        embedding_dim: int = 64,
+        pair_arch: tuple[int, ...] = (64, 64),
+        subsample: float = 0.8,
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ):
+        super().__init__(embedding_dim)
+        if has_image(observation_space):
+            raise ValueError("representation='spr' does not support image observations; use 'opr', 'stats' or 'none'")
+        if not 0.0 < subsample <= 1.0:
+            raise ValueError(f"subsample must be in (0, 1], got {subsample}")
+        self.action_space = action_space
+        self.subsample = subsample
+        input_dim = state_dim(observation_space) + encoded_action_dim(action_space)
+        self.pair_encoder = nn.Sequential(*create_mlp(input_dim, -1, list(pair_arch), activation_fn))
+        self.projection = nn.Linear(pair_arch[-1], embedding_dim)
+
+    def forward(self, data: PolicyData, keep: float | None = None) -> th.Tensor:
+        """:param keep: Fraction of pairs to keep (default: ``subsample`` in training mode, all in eval mode)."""
+        pairs = th.cat([data.states, encode_actions(data.actions, self.action_space)], dim=-1)
+        n_pairs = pairs.shape[1]
+        if n_pairs == 0:
+            raise ValueError("representation='spr' needs state-action pairs: n_state_action_pairs must be > 0")
+        keep = (self.subsample if self.training else 1.0) if keep is None else keep
+        n_keep = max(1, round(keep * n_pairs))
+        if n_keep < n_pairs:
+            index = th.rand(pairs.shape[:2], device=pairs.device).argsort(dim=1)[:, :n_keep]
+            pairs = th.gather(pairs, 1, index.unsqueeze(-1).expand(-1, -1, pairs.shape[-1]))
+        return self.projection(self.pair_encoder(pairs).mean(dim=1))
+
+
+class RawPolicyRepresentation(PolicyRepresentation):
+    """RPR: the flat parameter vector itself (the critic's embedding stream projects it)."""
+
+    def __init__(self, layout: ActorLayout):
+        super().__init__(layout.n_params)
+
+    def forward(self, data: PolicyData) -> th.Tensor:
+        return data.params
+
+
+class StatisticsPolicyRepresentation(PolicyRepresentation):
+    """Gradient-free parameter statistics: mean, std, min, quartiles and max of every W, b and the log-std."""
+
+    n_statistics = 7
+
+    def __init__(self, layout: ActorLayout):
+        n_tensors = 2 * len(layout.linear_shapes) + (1 if layout.log_std_numel else 0)
+        super().__init__(self.n_statistics * n_tensors)
+        self.layout = layout
+        self.register_buffer("quantiles", th.tensor([0.0, 0.25, 0.5, 0.75, 1.0]), persistent=False)
+
+    def _statistics(self, values: th.Tensor) -> th.Tensor:
+        values = values.flatten(start_dim=1)
+        std = values.std(dim=1, keepdim=True) if values.shape[1] > 1 else th.zeros_like(values[:, :1])
+        quantiles = th.quantile(values, self.quantiles.to(values.dtype), dim=1).T
+        return th.cat([values.mean(dim=1, keepdim=True), std, quantiles], dim=1)
+
+    def forward(self, data: PolicyData) -> th.Tensor:
+        rows, log_std = self.layout.split(data.params)
+        tensors = [part for layer in rows for part in (layer[..., :-1], layer[..., -1])]
+        if log_std is not None:
+            tensors.append(log_std)
+        return th.cat([self._statistics(tensor) for tensor in tensors], dim=1)
+
+
+class RandomPolicyRepresentation(PolicyRepresentation):
+    """Ran PR: a fixed random vector per policy, uniform in [-1, 1], drawn when the policy is recorded."""
+
+    uses_codes = True
+
+    def forward(self, data: PolicyData) -> th.Tensor:
+        return data.codes
+
+
+class NoPolicyRepresentation(PolicyRepresentation):
+    """No representation: the PeVFA critic degenerates to a conventional V(s) through the same code path."""
+
+    def __init__(self):
+        super().__init__(0)
+
+    def forward(self, data: PolicyData) -> th.Tensor:
+        return data.params.new_zeros((data.params.shape[0], 0))
+
+
+#: Valid values of ``representation``.
+REPRESENTATIONS = ("opr", "spr", "rpr", "random", "stats", "none")
+
+
+def make_representation(
+    name: str,
+    layout: ActorLayout,
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    embedding_dim: int = 64,
+    **kwargs: Any,
+) -> PolicyRepresentation:
+    """Build the representation called ``name`` (one of :data:`REPRESENTATIONS`).
+
+    ``embedding_dim`` sets the size of ``opr``, ``spr`` and ``random``; ``rpr`` and ``stats`` have the size of
+    their features, ``none`` has size 0. ``kwargs`` go to the representation's constructor.
+    """
+    if name not in REPRESENTATIONS:
+        raise ValueError(f"Unknown representation {name!r}, valid choices: {REPRESENTATIONS}")
+    if not isinstance(embedding_dim, int) or embedding_dim <= 0:
+        raise ValueError(f"embedding_dim must be a positive int, got {embedding_dim!r}")
+    if name in ("rpr", "stats", "none", "random") and kwargs:
+        raise ValueError(f"representation={name!r} takes no representation_kwargs, got {sorted(kwargs)}")
+    if name == "opr":
+        return OriginPolicyRepresentation(layout, embedding_dim, **kwargs)
+    if name == "spr":
+        return SurfacePolicyRepresentation(observation_space, action_space, embedding_dim, **kwargs)
+    if name == "rpr":
+        return RawPolicyRepresentation(layout)
+    if name == "stats":
+        return StatisticsPolicyRepresentation(layout)
+    if name == "random":
+        return RandomPolicyRepresentation(embedding_dim)
+    return NoPolicyRepresentation()

@@ -1,0 +1,246 @@
+"""Actor-critic policies whose critic is a PeVFA V(s, chi_pi)."""
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_pevfa.common.critics import PeVFAValueHead
+from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, has_image, state_dim
+from sb3_pevfa.common.representations import PolicyRepresentation, make_representation
+
+
+class _BoundValueNet(nn.Module):
+    """Stands in for SB3's ``value_net``: V(latent_vf) = head(latent_vf, chi of the behaviour policy).
+
+    With it SB3's own ``forward``, ``evaluate_actions`` and ``predict_values`` compute PeVFA values unchanged.
+    """
+
+    def __init__(self, head: PeVFAValueHead, embedding_fn: Callable[[], th.Tensor], is_frozen: Callable[[], bool]):
+        super().__init__()
+        self.head = head
+        # Plain attributes (bound methods of the policy), not submodules: no reference cycle in the module tree.
+        self._embedding_fn = embedding_fn
+        self._is_frozen = is_frozen
+
+    def forward(self, latent_vf: th.Tensor) -> th.Tensor:
+        if self._is_frozen():
+            with th.no_grad():
+                return self.head(latent_vf.detach(), self._embedding_fn())
+        return self.head(latent_vf, self._embedding_fn())
+
+
+class PeVFAActorCriticPolicy(ActorCriticPolicy):
+    """SB3's :class:`~stable_baselines3.common.policies.ActorCriticPolicy` with a policy-extended critic.
+
+    The actor is SB3's, unchanged. The critic reads the state stream (``net_arch["vf"]``, paper: one layer of 64)
+    and chi, the embedding of the *behaviour* policy set by :meth:`set_behaviour_policy` (the policy that
+    collected the current data; its raw data, not the live actor, so no gradient reaches the actor through chi).
+    Before any policy is recorded, chi is computed from the live actor's parameters.
+
+    Extra parameters (the rest are SB3's):
+
+    :param representation: One of ``opr``, ``spr``, ``rpr``, ``random``, ``stats``, ``none``
+    :param embedding_dim: Size of chi for ``opr``, ``spr`` and ``random``
+    :param representation_kwargs: Keyword arguments of the representation (e.g. ``layer_arch``, ``subsample``)
+    :param n_state_action_pairs: State-action pairs recorded per policy (SPR's data)
+    :param critic_embedding_arch: Embedding stream of the critic (paper: [64])
+    :param critic_head_arch: Layers after the streams are combined (paper: [128])
+    :param critic_combine: ``concat`` (paper) or ``product``
+    :param critic_activation_fn: Activation of the embedding stream and head (default: ``activation_fn``)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.Tanh,
+        *args: Any,
+        representation: str = "opr",
+        embedding_dim: int = 64,
+        representation_kwargs: dict[str, Any] | None = None,
+        n_state_action_pairs: int = 200,
+        critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
+        critic_head_arch: list[int] | tuple[int, ...] = (128,),
+        critic_combine: str = "concat",
+        critic_activation_fn: type[nn.Module] | None = None,
+        **kwargs: Any,
+    ):
+        if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
+            net_arch = dict(pi=[64, 64], vf=[64])
+        if not isinstance(n_state_action_pairs, (int, np.integer)) or n_state_action_pairs < 0:
+            raise ValueError(f"n_state_action_pairs must be an int >= 0, got {n_state_action_pairs!r}")
+        if representation == "spr" and n_state_action_pairs == 0:
+            raise ValueError("representation='spr' needs n_state_action_pairs > 0")
+        if has_image(observation_space):
+            n_state_action_pairs = 0
+        self.representation_name = representation
+        self.embedding_dim = embedding_dim
+        self.representation_kwargs = dict(representation_kwargs or {})
+        self.n_state_action_pairs = int(n_state_action_pairs)
+        self.critic_embedding_arch = list(critic_embedding_arch)
+        self.critic_head_arch = list(critic_head_arch)
+        self.critic_combine = critic_combine
+        self.critic_activation_fn = critic_activation_fn
+        self._critic_frozen = False
+        self._embedding_cache: th.Tensor | None = None
+        super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        self.layout = ActorLayout.from_policy(self)
+        self.representation: PolicyRepresentation = make_representation(
+            self.representation_name,
+            self.layout,
+            self.observation_space,
+            self.action_space,
+            self.embedding_dim,
+            **self.representation_kwargs,
+        )
+        head = PeVFAValueHead(
+            self.mlp_extractor.latent_dim_vf,
+            self.representation.embedding_dim,
+            self.critic_embedding_arch,
+            self.critic_head_arch,
+            self.critic_combine,
+            self.critic_activation_fn or self.activation_fn,
+        )
+        if self.ortho_init:
+            head.init_weights(self.init_weights)
+        self.value_net = _BoundValueNet(head, self.behaviour_embedding, lambda: self._critic_frozen)
+        self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
+        self.register_buffer("behaviour_params", th.zeros(self.layout.n_params))
+        self.register_buffer("behaviour_states", th.zeros(self.n_state_action_pairs, state_dim(self.observation_space)))
+        self.register_buffer("behaviour_actions", th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)))
+        self.register_buffer("behaviour_codes", th.zeros(self.code_dim))
+        self.register_buffer("has_behaviour", th.zeros((), dtype=th.bool))
+        critic_ids = {id(p) for p in self.critic_parameters()}
+        actor_params = [p for p in self.parameters() if id(p) not in critic_ids]
+        self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            [
+                {"params": actor_params, "name": "actor"},
+                {"params": list(self.critic_parameters()), "name": "critic"},
+            ],
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,
+        )
+
+    def critic_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters trained by the value loss only: state stream, embedding stream, head and representation.
+
+        A shared features extractor belongs to the actor group (as in SB3, it gets both losses)."""
+        modules: list[nn.Module] = [self.mlp_extractor.value_net, self.value_net, self.representation]
+        if not self.share_features_extractor:
+            modules.append(self.vf_features_extractor)
+        for module in modules:
+            yield from module.parameters()
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            representation=self.representation_name,
+            embedding_dim=self.embedding_dim,
+            representation_kwargs=self.representation_kwargs,
+            n_state_action_pairs=self.n_state_action_pairs,
+            critic_embedding_arch=self.critic_embedding_arch,
+            critic_head_arch=self.critic_head_arch,
+            critic_combine=self.critic_combine,
+            critic_activation_fn=self.critic_activation_fn,
+        )
+        return data
+
+    # ------------------------------------------------------------------ behaviour policy and its embedding
+    def set_behaviour_policy(self, data: PolicyData) -> None:
+        """Make the critic evaluate the policy described by ``data`` (one policy, ``P == 1``)."""
+        with th.no_grad():
+            self.behaviour_params.copy_(data.params[0])
+            self.behaviour_states.copy_(data.states[0])
+            self.behaviour_actions.copy_(data.actions[0])
+            self.behaviour_codes.copy_(data.codes[0])
+            self.has_behaviour.fill_(True)
+        self.clear_embedding_cache()
+
+    def behaviour_policy_data(self) -> PolicyData:
+        """Raw data of the behaviour policy; before any record, the live actor's parameters."""
+        if not bool(self.has_behaviour):
+            if self.representation.uses_state_action_pairs or self.representation.uses_codes:
+                raise RuntimeError(
+                    f"representation={self.representation_name!r} needs a recorded policy: train first, or call "
+                    "set_behaviour_policy() with a record from PolicyHistoryCallback"
+                )
+            params = self.layout.flatten(self).unsqueeze(0)
+            return PolicyData(params, self.behaviour_states[None], self.behaviour_actions[None], self.behaviour_codes[None])
+        return PolicyData(
+            self.behaviour_params[None], self.behaviour_states[None], self.behaviour_actions[None], self.behaviour_codes[None]
+        )
+
+    def behaviour_embedding(self) -> th.Tensor:
+        """chi of the behaviour policy, ``(1, embedding_dim)``: recomputed (with gradient) while the critic trains,
+        cached otherwise (rollouts, evaluation, frozen critic)."""
+        if self.training and not self._critic_frozen:
+            return self.representation(self.behaviour_policy_data())
+        if self._embedding_cache is None:
+            with th.no_grad():
+                embedding = self.representation(self.behaviour_policy_data())
+            if not bool(self.has_behaviour):
+                return embedding
+            self._embedding_cache = embedding
+        return self._embedding_cache
+
+    def clear_embedding_cache(self) -> None:
+        self._embedding_cache = None
+
+    def set_training_mode(self, mode: bool) -> None:
+        super().set_training_mode(mode)
+        self.clear_embedding_cache()
+
+    @contextmanager
+    def critic_frozen(self) -> Iterator[None]:
+        """Within this context values carry no gradient (the paper's order: the actor update after the critic's)."""
+        self._critic_frozen = True
+        self.clear_embedding_cache()
+        try:
+            yield
+        finally:
+            self._critic_frozen = False
+            self.clear_embedding_cache()
+
+    # ------------------------------------------------------------------ values of arbitrary policies
+    def embed(self, data: PolicyData) -> th.Tensor:
+        """chi of ``P`` policies, ``(P, embedding_dim)``."""
+        return self.representation(data)
+
+    def predict_policy_values(self, obs: PyTorchObs, embeddings: th.Tensor) -> th.Tensor:
+        """V(s, chi) for a batch of observations and matching (or one broadcast) embeddings, ``(batch, 1)``."""
+        features = super(ActorCriticPolicy, self).extract_features(obs, self.vf_features_extractor)
+        latent_vf = self.mlp_extractor.forward_critic(features)
+        return self.value_net.head(latent_vf, embeddings)
+
+
+class PeVFAActorCriticCnnPolicy(PeVFAActorCriticPolicy):
+    """CNN policy (NatureCNN features). OPR encodes the actor's MLP head (``policy_net`` and ``action_net``)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class PeVFAMultiInputActorCriticPolicy(PeVFAActorCriticPolicy):
+    """Policy for Dict observations (CombinedExtractor features)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+MlpPolicy = PeVFAActorCriticPolicy
+CnnPolicy = PeVFAActorCriticCnnPolicy
+MultiInputPolicy = PeVFAMultiInputActorCriticPolicy

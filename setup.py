@@ -1,0 +1,38 @@
+import os
+
+from setuptools import find_packages, setup
+
+with open(os.path.join("sb3_pevfa", "version.txt")) as file_handler:
+    __version__ = file_handler.read().strip()
+
+with open("README.md") as file_handler:
+    long_description = file_handler.read()
+
+setup(
+    name="sb3-pevfa",
+    version=__version__,
+    description="Policy-extended Value Function Approximators (PPO-PeVFA) for Stable-Baselines3",
+    long_description=long_description,
+    long_description_content_type="text/markdown",
+    packages=[package for package in find_packages() if package.startswith("sb3_pevfa")],
+    package_data={"sb3_pevfa": ["py.typed", "version.txt"]},
+    python_requires=">=3.10",
+    install_requires=[
+        "stable_baselines3>=2.4.0,<3.0",
+        # The CPU wheel 2.13.0 satisfies this range: install it first on CPU-only machines.
+        "torch>=2.3,<3.0",
+        "gymnasium>=1.0",
+        "numpy>=1.24",
+    ],
+    extras_require={
+        "mujoco": ["gymnasium[mujoco]>=1.0"],
+        "zoo": ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=3.0", "requests", "seaborn"],
+        "tests": ["pytest", "pytest-xdist", "ruff", "gymnasium[mujoco]>=1.0"],
+        "docs": ["matplotlib", "scikit-learn"],
+    },
+    license="MIT",
+    classifiers=[
+        "Programming Language :: Python :: 3",
+        "Topic :: Scientific/Engineering :: Artificial Intelligence",
+    ],
+)
