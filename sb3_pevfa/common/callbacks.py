@@ -56,7 +56,9 @@ class PolicyHistoryCallback(BaseCallback):
                 seed=self.model.seed,
             )
         elif self.history.n_params != self.layout.n_params:
-            raise ValueError(f"History stores {self.history.n_params} actor parameters, the model's actor has {self.layout.n_params}")
+            raise ValueError(
+                f"History stores {self.history.n_params} actor parameters, the model's actor has {self.layout.n_params}"
+            )
 
     def _probe_observations(self):
         n_pairs = self.history.n_state_action_pairs

@@ -318,7 +318,9 @@ class PolicyHistory:
                 if meta["signature"].get(key) != value
             }
             if mismatches:
-                details = ", ".join(f"{key}: file has {found!r}, model expects {wanted!r}" for key, (found, wanted) in mismatches.items())
+                details = ", ".join(
+                    f"{key}: file has {found!r}, model expects {wanted!r}" for key, (found, wanted) in mismatches.items()
+                )
                 raise ValueError(f"History file {path} does not match this model ({details})")
             arrays = {name: archive[name] for name in archive.files if name != "meta"}
         self.reset()

@@ -79,9 +79,7 @@ class ActorLayout:
     def flatten(self, policy: ActorCriticPolicy) -> th.Tensor:
         """Flat copy (detached) of the actor's parameters, shape ``(n_params,)``."""
         with th.no_grad():
-            parts = [
-                th.cat([layer.weight, layer.bias.unsqueeze(1)], dim=1).flatten() for layer in self.linear_layers(policy)
-            ]
+            parts = [th.cat([layer.weight, layer.bias.unsqueeze(1)], dim=1).flatten() for layer in self.linear_layers(policy)]
             if self.log_std_numel:
                 parts.append(policy.log_std.flatten())
             return th.cat(parts).detach().clone()
@@ -121,9 +119,7 @@ def encode_actions(actions: th.Tensor, action_space: spaces.Space) -> th.Tensor:
     if isinstance(action_space, spaces.Discrete):
         return F.one_hot(actions[..., 0].long(), int(action_space.n)).float()
     if isinstance(action_space, spaces.MultiDiscrete):
-        return th.cat(
-            [F.one_hot(actions[..., i].long(), int(n)).float() for i, n in enumerate(action_space.nvec)], dim=-1
-        )
+        return th.cat([F.one_hot(actions[..., i].long(), int(n)).float() for i, n in enumerate(action_space.nvec)], dim=-1)
     return actions.float()
 
 

@@ -29,6 +29,19 @@ SelfPPOPeVFA = TypeVar("SelfPPOPeVFA", bound="PPOPeVFA")
 UPDATE_ORDERS = ("joint", "critic_first")
 
 
+_SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+
+
+def _check_observation_space(observation_space: spaces.Space) -> None:
+    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
+    for space in subspaces:
+        if not isinstance(space, _SUPPORTED_OBSERVATION_SPACES):
+            raise TypeError(
+                f"PPOPeVFA supports observation spaces {[s.__name__ for s in _SUPPORTED_OBSERVATION_SPACES]} "
+                f"and Dict of them, got {observation_space}"
+            )
+
+
 class PPOPeVFA(PPO):
     """PPO whose critic is a PeVFA V(s, chi_pi), trained on the data of all historical policies.
 
@@ -81,7 +94,7 @@ class PPOPeVFA(PPO):
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
         clip_range: float | Schedule = 0.2,
-        clip_range_vf: None | float | Schedule = None,
+        clip_range_vf: float | Schedule | None = None,
         normalize_advantage: bool = True,
         ent_coef: float = 0.0,
         vf_coef: float = 0.5,
@@ -122,34 +135,41 @@ class PPOPeVFA(PPO):
         if clash:
             raise ValueError(f"Pass {clash} as PPOPeVFA arguments, not in policy_kwargs")
         policy_kwargs.update(pevfa_policy_kwargs)
-        super().__init__(
-            policy,
-            env,
-            learning_rate=learning_rate,
-            n_steps=n_steps,
-            batch_size=batch_size,
-            n_epochs=n_epochs,
-            gamma=gamma,
-            gae_lambda=gae_lambda,
-            clip_range=clip_range,
-            clip_range_vf=clip_range_vf,
-            normalize_advantage=normalize_advantage,
-            ent_coef=ent_coef,
-            vf_coef=vf_coef,
-            max_grad_norm=max_grad_norm,
-            use_sde=use_sde,
-            sde_sample_freq=sde_sample_freq,
-            rollout_buffer_class=rollout_buffer_class,
-            rollout_buffer_kwargs=rollout_buffer_kwargs,
-            target_kl=target_kl,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            _init_setup_model=False,
-        )
+        try:
+            super().__init__(
+                policy,
+                env,
+                learning_rate=learning_rate,
+                n_steps=n_steps,
+                batch_size=batch_size,
+                n_epochs=n_epochs,
+                gamma=gamma,
+                gae_lambda=gae_lambda,
+                clip_range=clip_range,
+                clip_range_vf=clip_range_vf,
+                normalize_advantage=normalize_advantage,
+                ent_coef=ent_coef,
+                vf_coef=vf_coef,
+                max_grad_norm=max_grad_norm,
+                use_sde=use_sde,
+                sde_sample_freq=sde_sample_freq,
+                rollout_buffer_class=rollout_buffer_class,
+                rollout_buffer_kwargs=rollout_buffer_kwargs,
+                target_kl=target_kl,
+                stats_window_size=stats_window_size,
+                tensorboard_log=tensorboard_log,
+                policy_kwargs=policy_kwargs,
+                verbose=verbose,
+                seed=seed,
+                device=device,
+                _init_setup_model=False,
+            )
+        except AssertionError as error:  # SB3 asserts on unsupported action spaces: make it a precise TypeError
+            if "action spaces" in str(error):
+                raise TypeError(str(error)) from error
+            raise
+        if self.env is not None:
+            _check_observation_space(self.observation_space)
         self.representation = representation
         self.embedding_dim = embedding_dim
         self.critic_learning_rate = critic_learning_rate
@@ -211,7 +231,9 @@ class PPOPeVFA(PPO):
                 )
             self.rollout_buffer_kwargs = {**self.rollout_buffer_kwargs, "value_target_lambda": self.value_target_lambda}
         super()._setup_model()
-        self.critic_lr_schedule = self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
+        self.critic_lr_schedule = (
+            self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
+        )
         self.history = PolicyHistory(
             self.observation_space,
             self.action_space,
@@ -278,7 +300,10 @@ class PPOPeVFA(PPO):
         buffer = self.rollout_buffer
         n = buffer.buffer_size * buffer.n_envs
         if isinstance(buffer.observations, dict):
-            return {key: th.as_tensor(obs.reshape(n, *obs.shape[2:]), device=self.device) for key, obs in buffer.observations.items()}
+            return {
+                key: th.as_tensor(obs.reshape(n, *obs.shape[2:]), device=self.device)
+                for key, obs in buffer.observations.items()
+            }
         return th.as_tensor(buffer.observations.reshape(n, *buffer.observations.shape[2:]), device=self.device)
 
     def _minibatches(self, n: int) -> Generator[np.ndarray, None, None]:
@@ -293,7 +318,9 @@ class PPOPeVFA(PPO):
         losses = []
         for _ in range(self.n_epochs):
             for index in self._minibatches(len(returns)):
-                batch = {k: v[index] for k, v in observations.items()} if isinstance(observations, dict) else observations[index]
+                batch = (
+                    {k: v[index] for k, v in observations.items()} if isinstance(observations, dict) else observations[index]
+                )
                 loss = F.mse_loss(self.policy.predict_values(batch).flatten(), returns[index])
                 self._critic_step(loss)
                 losses.append(loss.item())

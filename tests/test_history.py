@@ -1,0 +1,118 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from sb3_pevfa.common.history import PolicyHistory
+
+OBS = gym.spaces.Box(-1, 1, (3,), np.float32)
+ACT = gym.spaces.Discrete(2)
+
+
+def _record(value: float, n_params=5, n_pairs=4, code_dim=0):
+    return {
+        "params": np.full(n_params, value, np.float32),
+        "states": np.full((n_pairs, 3), value, np.float32),
+        "actions": np.zeros((n_pairs, 1), np.float32),
+        "codes": np.full(code_dim, value, np.float32),
+    }
+
+
+def _fill(history: PolicyHistory, n_policies: int, samples_per_policy: int) -> None:
+    for i in range(n_policies):
+        pid = history.add_policy(_record(i), n_updates=i, num_timesteps=i * samples_per_policy)
+        obs = np.full((samples_per_policy, 3), i, np.float32)
+        history.add_samples(obs, np.full(samples_per_policy, i), pid)
+
+
+def test_bounds_and_fifo_order():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, buffer_size=2500, max_policies=100, seed=0)
+    _fill(history, 10, 1000)
+    assert history.n_samples == 2500 and history.n_policies == 10
+    obs, targets, ids = history.samples()
+    # the oldest samples went first: half of policy 7, then policies 8 and 9
+    assert np.array_equal(np.unique(ids), [7, 8, 9]) and (ids == 7).sum() == 500
+    assert np.array_equal(obs[:, 0], targets) and np.array_equal(targets, ids.astype(np.float32))
+    assert history.nbytes > 0 and "policies=10" in repr(history)
+
+
+def test_policy_bound_evicts_its_samples():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, buffer_size=10_000, max_policies=3, seed=0)
+    _fill(history, 5, 100)
+    assert history.policy_ids == [2, 3, 4]
+    _, _, ids = history.samples()
+    assert set(ids.tolist()) == {2, 3, 4} and history.n_samples == 300
+    assert history.policy_info(4) == {"n_updates": 4, "num_timesteps": 400}
+    np.testing.assert_array_equal(history.policy_data([4, 2])["params"][:, 0], [4, 2])
+
+
+def test_sampling_excludes_current_policy_and_is_seeded():
+    def draw(seed):
+        history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=seed)
+        _fill(history, 4, 50)
+        return [history.sample(32, exclude_policy=3) for _ in range(20)]
+
+    batches = draw(0)
+    assert all(3 not in ids for _, _, ids in batches)
+    assert all(np.array_equal(a[2], b[2]) for a, b in zip(batches, draw(0)))
+    assert not all(np.array_equal(a[2], b[2]) for a, b in zip(batches, draw(1)))
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4)
+    _fill(history, 1, 10)
+    assert history.sample(8, exclude_policy=0) is None
+    assert history.sample(8)[0].shape == (8, 3)
+
+
+def test_dict_observations_and_save_load_roundtrip(tmp_path):
+    obs_space = gym.spaces.Dict({"a": gym.spaces.Box(-1, 1, (2,)), "img": gym.spaces.Box(0, 255, (4, 4, 1), np.uint8)})
+    history = PolicyHistory(obs_space, ACT, 5, n_state_action_pairs=0, code_dim=2, seed=0, buffer_size=150, representation="x")
+    for i in range(3):
+        record = _record(i, n_pairs=0, code_dim=2)
+        record["states"] = np.zeros((0, 2 + 16), np.float32)
+        pid = history.add_policy(record)
+        history.add_samples({"a": np.full((2, 30, 2), i), "img": np.full((2, 30, 4, 4, 1), i)}, np.full((2, 30), i), pid)
+    assert history.n_samples == 150
+    obs, _, _ = history.sample(10)
+    assert obs["img"].dtype == np.uint8 and obs["img"].shape == (10, 4, 4, 1)
+    history.save(tmp_path / "hist")
+    loaded = PolicyHistory(
+        obs_space, ACT, 5, n_state_action_pairs=0, code_dim=2, seed=123, buffer_size=150, representation="x"
+    )
+    loaded.load(tmp_path / "hist")
+    assert loaded.policy_ids == history.policy_ids
+    for a, b in zip(history.samples(), loaded.samples()):
+        if isinstance(a, dict):
+            assert all(np.array_equal(a[k], b[k]) for k in a)
+        else:
+            assert np.array_equal(a, b)
+    # the RNG state travels with the file
+    assert np.array_equal(history.sample(16)[2], loaded.sample(16)[2])
+    # policy ids continue after a load
+    record = {k: v[0] for k, v in history.policy_data([2]).items()}
+    assert history.add_policy(record) == 3 and loaded.add_policy(record) == 3
+
+
+def test_load_mismatch_is_a_clear_error(tmp_path):
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, representation="opr")
+    _fill(history, 2, 10)
+    history.save(tmp_path / "h.npz")
+    with pytest.raises(ValueError, match="representation: file has 'opr', model expects 'spr'"):
+        PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, representation="spr").load(tmp_path / "h.npz")
+    other_obs = gym.spaces.Box(-1, 1, (4,), np.float32)
+    with pytest.raises(ValueError, match="observation_shapes"):
+        PolicyHistory(other_obs, ACT, 5, n_state_action_pairs=4, representation="opr").load(tmp_path / "h.npz")
+    with pytest.raises(ValueError, match="n_params"):
+        PolicyHistory(OBS, ACT, 6, n_state_action_pairs=4, representation="opr").load(tmp_path / "h.npz")
+
+
+def test_bad_records_and_arguments():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4)
+    with pytest.raises(ValueError, match="params"):
+        history.add_policy(_record(0, n_params=6))
+    with pytest.raises(KeyError):
+        history.add_samples(np.zeros((2, 3)), np.zeros(2), 0)
+    first = history.add_policy(_record(0))
+    history.add_policy(_record(1))
+    with pytest.raises(ValueError, match="latest"):
+        history.add_samples(np.zeros((2, 3)), np.zeros(2), first)
+    for kwargs in ({"buffer_size": 0}, {"max_policies": -1}):
+        with pytest.raises(ValueError, match="positive"):
+            PolicyHistory(OBS, ACT, 5, **kwargs)

@@ -1,0 +1,326 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from conftest import FAST, DictPendulum, actor_parameters, module_parameters, read_progress
+from stable_baselines3 import A2C, PPO
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PPOPeVFA
+from sb3_pevfa.common.buffers import PeVFARolloutBuffer
+from sb3_pevfa.common.policy_data import ActorLayout
+from sb3_pevfa.ppo_pevfa.policies import PeVFAActorCriticPolicy
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_every_representation_runs(env_id, representation, csv_logger):
+    model = PPOPeVFA("MlpPolicy", env_id, representation=representation, **FAST)
+    model.set_logger(csv_logger[0])
+    model.learn(256)
+    # one record per update (4 rollouts) plus the final policy
+    assert model.history.n_policies == 5 and model.history.n_samples == 256
+    # SB3 writes the logs of an update at the next iteration: rows 1-3 hold updates 1-3
+    rows = read_progress(csv_logger[1])
+    assert len(rows) == 4
+    last = rows[-1]
+    assert int(last["pevfa/n_policies"]) == 3 and int(last["pevfa/history_samples"]) == 192
+    assert int(last["pevfa/history_updates"]) == 4 and float(last["pevfa/history_value_loss"]) >= 0
+    assert "train/value_loss" in last and "train/policy_gradient_loss" in last
+    if representation != "none":
+        assert float(last["pevfa/embedding_norm"]) > 0
+    # the first update has no historical policy to train on
+    assert int(rows[1]["pevfa/history_updates"]) == 0
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_dict_observations(representation):
+    model = PPOPeVFA("MultiInputPolicy", DictPendulum(), representation=representation, **FAST)
+    model.learn(192)
+    obs, _, _ = model.history.sample(8)
+    assert set(obs) == {"angle", "speed"}
+    assert model.history.policy_data([0])["states"].shape == (1, 200, 3)
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_vectorized_and_normalized_envs(representation):
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=4, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, representation=representation, **{**FAST, "n_steps": 32})
+    model.learn(384)
+    assert model.history.n_samples == 384 and model.history.n_policies == 4
+    # samples keep the (normalised) observations the policy saw
+    assert np.abs(model.history.samples()[0]).max() <= env.clip_obs
+
+
+def _predictions(model, obs):
+    actions, _ = model.predict(obs, deterministic=True)
+    model.policy.set_training_mode(False)
+    with th.no_grad():
+        values = model.policy.predict_values(model.policy.obs_to_tensor(obs)[0])
+    return actions, values.numpy()
+
+
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_save_load_roundtrip(tmp_path, representation):
+    model = PPOPeVFA(
+        "MlpPolicy",
+        "Pendulum-v1",
+        representation=representation,
+        critic_learning_rate=2e-3,
+        update_order="critic_first",
+        value_target_lambda=1.0,
+        history_buffer_size=150,
+        history_max_policies=3,
+        policy_kwargs=dict(critic_head_arch=[32]),
+        **FAST,
+    )
+    model.learn(256)
+    obs = np.stack([model.observation_space.sample() for _ in range(10)])
+    expected = _predictions(model, obs)
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
+    loaded = PPOPeVFA.load(tmp_path / "model", env=None)
+    for name in ("critic_learning_rate", "update_order", "value_target_lambda", "history_buffer_size", "history_max_policies"):
+        assert getattr(loaded, name) == getattr(model, name)
+    assert loaded.policy.representation_name == representation and loaded.policy.critic_head_arch == [32]
+    for got, want in zip(_predictions(loaded, obs), expected):
+        np.testing.assert_array_equal(got, want)
+    # optimizer state (both parameter groups) round-trips
+    assert [g["name"] for g in loaded.policy.optimizer.param_groups] == ["actor", "critic"]
+    assert len(loaded.policy.optimizer.state) == len(model.policy.optimizer.state) > 0
+    assert loaded.history.n_policies == 0
+    loaded.load_history(tmp_path / "history")
+    assert loaded.history.policy_ids == model.history.policy_ids and loaded.history.n_samples == 128  # 2 policies x 64
+
+
+def test_load_history_of_another_model_is_refused(tmp_path):
+    opr = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="opr", **FAST)
+    opr.learn(64)
+    opr.save_history(tmp_path / "opr")
+    spr = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
+    with pytest.raises(ValueError, match="representation"):
+        spr.load_history(tmp_path / "opr")
+    cartpole = PPOPeVFA("MlpPolicy", "CartPole-v1", representation="opr", **FAST)
+    with pytest.raises(ValueError, match="observation_shapes"):
+        cartpole.load_history(tmp_path / "opr")
+
+
+def _final_state(model):
+    return th.cat([p.detach().flatten() for p in model.policy.parameters()]).numpy()
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_same_seed_same_run(representation):
+    def run(seed):
+        model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **{**FAST, "seed": seed})
+        return _final_state(model.learn(256))
+
+    np.testing.assert_array_equal(run(0), run(0))
+    assert not np.array_equal(run(0), run(1))
+
+
+@pytest.mark.parametrize("update_order", ["joint", "critic_first"])
+def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
+    """Model + history + RNG states saved: learning on continues as without the interruption.
+
+    SB3's load resets the environment (seeded with the model's seed), so the reference run does the same.
+    Equal up to float round-off: torch's CPU kernels may round differently for differently aligned buffers
+    (SB3's own PPO shows the same ~1e-9 differences after a load)."""
+
+    def make_env():
+        return make_vec_env("Pendulum-v1", n_envs=1)
+
+    kwargs = dict(representation="spr", update_order=update_order, **FAST)
+    reference = PPOPeVFA("MlpPolicy", make_env(), **kwargs)
+    reference.learn(192)
+    reference.save(tmp_path / "model")
+    reference.save_history(tmp_path / "history")
+    reference.set_env(make_env())
+    reference.env.seed(reference.seed)
+    reference.learn(192, reset_num_timesteps=False)
+
+    resumed = PPOPeVFA.load(tmp_path / "model", env=make_env())
+    resumed.load_history(tmp_path / "history")
+    resumed.learn(192, reset_num_timesteps=False)
+    assert resumed.history.policy_ids == reference.history.policy_ids
+    np.testing.assert_allclose(resumed.history.samples()[0], reference.history.samples()[0], atol=1e-3)
+    error = np.abs(_final_state(resumed) - _final_state(reference)).max()
+    # resuming without the history gives a run an order of magnitude further away
+    no_history = PPOPeVFA.load(tmp_path / "model", env=make_env())
+    no_history.learn(192, reset_num_timesteps=False)
+    assert error < 1e-3 and error < np.abs(_final_state(no_history) - _final_state(reference)).max() / 10
+
+
+def test_value_loss_trains_encoder_and_not_actor():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="opr", **FAST)
+    model.learn(192)
+    policy = model.policy
+    # gradient of the on-policy value loss: reaches the encoder and the critic, never the actor
+    policy.set_training_mode(True)
+    data = next(model.rollout_buffer.get(64))
+    values, _, _ = policy.evaluate_actions(data.observations, data.actions)
+    policy.optimizer.zero_grad()
+    th.nn.functional.mse_loss(values.flatten(), data.returns).backward()
+    actor = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
+    assert all(p.grad is None or not p.grad.any() for p in actor)
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.representation.parameters())
+    # historical updates change the encoder and the critic, and leave the actor as it was
+    actor_before, encoder_before = actor_parameters(policy), module_parameters(policy.representation)
+    critic_before = module_parameters(policy.value_net)
+    model._history_credit = 10 * model.history_train_freq
+    losses = model._train_on_history()
+    assert len(losses) > 0
+    assert th.equal(actor_parameters(policy), actor_before)
+    assert not th.equal(module_parameters(policy.representation), encoder_before)
+    assert not th.equal(module_parameters(policy.value_net), critic_before)
+
+
+def test_critic_frozen_for_actor_update_in_critic_first_order(csv_logger):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order="critic_first", **FAST)
+    model.set_logger(csv_logger[0])
+    model.learn(128)
+    critic_before = module_parameters(model.policy.value_net)
+    with model.policy.critic_frozen():
+        model.policy.set_training_mode(True)
+        values, _, _ = model.policy.evaluate_actions(*next(model.rollout_buffer.get(32))[:2])
+        assert not values.requires_grad
+        # SB3's PPO update in this context does not move the critic
+        PPO.train(model)
+    assert th.equal(module_parameters(model.policy.value_net), critic_before)
+    assert "pevfa/critic_value_loss" in read_progress(csv_logger[1])[-1]
+
+
+def test_critic_first_recomputes_advantages_with_updated_critic():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order="critic_first", **FAST)
+    model.learn(64)
+    _, callback = model._setup_learn(64, reset_num_timesteps=False)
+    model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    values_before = model.rollout_buffer.values.copy()
+    model._train_critic_on_rollout()
+    model._recompute_advantages()
+    assert not np.allclose(model.rollout_buffer.values, values_before)
+    model.policy.set_training_mode(False)
+    with th.no_grad():
+        expected = model.policy.predict_values(model._rollout_observations()).numpy().reshape(values_before.shape)
+    np.testing.assert_allclose(model.rollout_buffer.values, expected, rtol=1e-6)
+
+
+def test_value_target_lambda_gives_monte_carlo_returns():
+    obs_space, act_space = gym.spaces.Box(-1, 1, (1,)), gym.spaces.Box(-1, 1, (1,))
+    buffers = {
+        lam: PeVFARolloutBuffer(5, obs_space, act_space, gamma=0.9, gae_lambda=0.5, value_target_lambda=lam)
+        for lam in (None, 1.0)
+    }
+    sb3 = RolloutBuffer(5, obs_space, act_space, gamma=0.9, gae_lambda=0.5)
+    rewards = [1.0, 2.0, 3.0, 4.0, 5.0]
+    for buffer in [*buffers.values(), sb3]:
+        for t, r in enumerate(rewards):
+            buffer.add(np.zeros((1, 1)), np.zeros((1, 1)), np.array([r]), np.array([t == 3]), th.tensor([0.5]), th.zeros(1))
+        buffer.compute_returns_and_advantage(last_values=th.tensor([10.0]), dones=np.array([False]))
+    np.testing.assert_allclose(buffers[None].returns, sb3.returns)
+    np.testing.assert_allclose(buffers[1.0].advantages, sb3.advantages)
+    # episode boundary before step 3: Monte-Carlo returns of steps 0-2, then 3-4 bootstrapped with 10
+    mc = [1 + 0.9 * 2 + 0.81 * 3, 2 + 0.9 * 3, 3, 4 + 0.9 * (5 + 0.9 * 10), 5 + 0.9 * 10]
+    np.testing.assert_allclose(buffers[1.0].returns.flatten(), mc, rtol=1e-5)
+
+
+def test_separate_critic_learning_rate(csv_logger):
+    model = PPOPeVFA(
+        "MlpPolicy", "CartPole-v1", learning_rate=1e-4, critic_learning_rate=lambda progress: 1e-3 * progress, **FAST
+    )
+    model.set_logger(csv_logger[0])
+    model.learn(128)
+    groups = {g["name"]: g["lr"] for g in model.policy.optimizer.param_groups}
+    # the schedules are at progress 0 after the last update
+    assert groups["actor"] == pytest.approx(1e-4) and groups["critic"] == 0.0
+    rows = read_progress(csv_logger[1])
+    assert float(rows[1]["pevfa/critic_learning_rate"]) == pytest.approx(1e-3 * 0.5)
+    critic = {id(p) for p in model.policy.critic_parameters()}
+    assert critic == {id(p) for p in model.policy.optimizer.param_groups[1]["params"]}
+    assert {id(p) for p in model.policy.representation.parameters()} <= critic
+    assert not {id(p) for p in model.policy.action_net.parameters()} & critic
+
+
+def test_none_is_a_conventional_critic_through_the_same_path():
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST)
+    head = model.policy.value_net.head
+    assert head.embedding_net is None and model.policy.representation.embedding_dim == 0
+    assert len(list(model.policy.representation.parameters())) == 0
+    model.learn(128)
+
+
+def test_history_bounds_during_training():
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", history_buffer_size=100, history_max_policies=3, **FAST)
+    model.learn(320)
+    assert model.history.n_samples == 100 and model.history.n_policies == 3
+    assert set(model.history.samples()[2].tolist()) <= set(model.history.policy_ids)
+
+
+@pytest.mark.parametrize("algo", [PPO, A2C])
+def test_snapshot_callback_on_plain_sb3(tmp_path, algo):
+    model = algo("MlpPolicy", "CartPole-v1", n_steps=32, seed=0)
+    callback = PolicyHistoryCallback(n_state_action_pairs=10)
+    model.learn(128, callback=callback)
+    history = callback.history
+    assert history.n_policies == 128 // (32 * model.n_envs) + 1 and history.n_samples == 128
+    assert history.policy_data(history.policy_ids)["states"].shape[1:] == (10, 4)
+    # the final record is the trained policy
+    live = ActorLayout.from_policy(model.policy).flatten(model.policy).numpy()
+    np.testing.assert_array_equal(history.policy_data([history.latest_policy_id])["params"][0], live)
+    history.save(tmp_path / "h")
+    PolicyHistory(model.observation_space, model.action_space, history.n_params, 10).load(tmp_path / "h")
+
+
+def test_bad_input_errors():
+    env = "CartPole-v1"
+    cases = [
+        (dict(representation="opr_cl"), ValueError, "valid choices"),
+        (dict(update_order="actor_first"), ValueError, "valid choices"),
+        (dict(embedding_dim=0), ValueError, "embedding_dim"),
+        (dict(history_buffer_size=0), ValueError, "history_buffer_size"),
+        (dict(history_max_policies=-2), ValueError, "history_max_policies"),
+        (dict(history_batch_size=0), ValueError, "history_batch_size"),
+        (dict(history_train_freq=-1), ValueError, "history_train_freq"),
+        (dict(n_state_action_pairs=-1), ValueError, "n_state_action_pairs"),
+        (dict(representation="spr", n_state_action_pairs=0), ValueError, "n_state_action_pairs"),
+        (dict(critic_learning_rate=-1.0), ValueError, "critic_learning_rate"),
+        (dict(value_target_lambda=1.5), ValueError, "value_target_lambda"),
+        (dict(policy_kwargs=dict(representation="spr")), ValueError, "policy_kwargs"),
+        (dict(policy_kwargs=dict(critic_combine="hyper")), ValueError, "valid choices"),
+        (dict(policy_kwargs=dict(critic_head_arch=[0])), ValueError, "positive"),
+        (dict(value_target_lambda=1.0, rollout_buffer_class=RolloutBuffer), ValueError, "PeVFARolloutBuffer"),
+    ]
+    for kwargs, error, match in cases:
+        with pytest.raises(error, match=match):
+            PPOPeVFA("MlpPolicy", env, **kwargs)
+    with pytest.raises(TypeError, match="PeVFA policy"):
+        PPOPeVFA(ActorCriticPolicy, env)
+    with pytest.raises(ValueError, match="Policy"):
+        PPOPeVFA("LstmPolicy", env)
+
+    class TupleActions(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (2,))
+        action_space = gym.spaces.Tuple([gym.spaces.Discrete(2), gym.spaces.Discrete(2)])
+
+    with pytest.raises(TypeError, match="action spaces"):
+        PPOPeVFA("MlpPolicy", TupleActions())
+
+    class TupleObservations(gym.Env):
+        observation_space = gym.spaces.Tuple([gym.spaces.Discrete(2), gym.spaces.Discrete(2)])
+        action_space = gym.spaces.Discrete(2)
+
+    with pytest.raises(TypeError, match="observation space"):
+        PPOPeVFA("MlpPolicy", TupleObservations())
+
+
+def test_policy_without_record_uses_live_parameters():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    obs = th.zeros(3, 3)
+    assert model.policy.predict_values(obs).shape == (3, 1)
+    spr = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
+    with pytest.raises(RuntimeError, match="recorded policy"):
+        spr.policy.predict_values(obs)
+    assert isinstance(model.policy, PeVFAActorCriticPolicy)
