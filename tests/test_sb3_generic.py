@@ -1,0 +1,155 @@
+"""SB3's generic algorithm checks (save/load, predict, callbacks, determinism, spaces, dict and image
+observations, train/eval mode) with PPOPeVFA in place of PPO."""
+
+import numpy as np
+import pytest
+import torch as th
+from conftest import FAST
+from stable_baselines3.common.callbacks import (
+    CallbackList,
+    CheckpointCallback,
+    EvalCallback,
+    StopTrainingOnMaxEpisodes,
+    StopTrainingOnRewardThreshold,
+)
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import (
+    FakeImageEnv,
+    IdentityEnv,
+    IdentityEnvBox,
+    IdentityEnvMultiBinary,
+    IdentityEnvMultiDiscrete,
+    SimpleMultiObsEnv,
+)
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.utils import get_device
+
+from sb3_pevfa import PPOPeVFA
+
+SPACE_ENVS = {
+    "discrete": lambda: IdentityEnv(10),
+    "box": lambda: IdentityEnvBox(eps=0.5),
+    "multidiscrete": lambda: IdentityEnvMultiDiscrete(2),
+    "multibinary": lambda: IdentityEnvMultiBinary(2),
+}
+
+
+def _saved_and_loaded(model, path):
+    model.save(path)
+    return PPOPeVFA.load(path, env=None)
+
+
+@pytest.mark.parametrize("space", sorted(SPACE_ENVS))
+@pytest.mark.parametrize("representation", ["opr", "spr", "stats"])
+def test_action_spaces_predict_and_save_load(tmp_path, space, representation):
+    env = SPACE_ENVS[space]()
+    model = PPOPeVFA("MlpPolicy", env, representation=representation, **FAST).learn(192)
+    obs, _ = env.reset(seed=0)
+    action, state = model.predict(obs, deterministic=True)
+    assert env.action_space.contains(action) and state is None
+    batch = np.stack([obs, obs])
+    actions, _ = model.predict(batch, deterministic=True)
+    assert actions.shape[0] == 2
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(batch, deterministic=True)[0], actions)
+    evaluate_policy(loaded, make_vec_env(SPACE_ENVS[space], n_envs=1), n_eval_episodes=1)
+
+
+def test_deterministic_predictions_and_env_none(tmp_path):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).learn(128)
+    obs = np.stack([model.observation_space.sample() for _ in range(5)])
+    first = model.predict(obs, deterministic=True)[0]
+    for _ in range(3):
+        np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], first)
+    assert not np.array_equal(model.predict(obs, deterministic=False)[0], first)
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    assert loaded.env is None
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], first)
+    with pytest.raises(ValueError):  # SB3's check of a wrong observation shape
+        loaded.predict(np.zeros((2, 7)))
+
+
+def test_callbacks(tmp_path):
+    eval_env = make_vec_env("CartPole-v1", n_envs=1, seed=1)
+    callbacks = CallbackList(
+        [
+            EvalCallback(
+                eval_env,
+                eval_freq=64,
+                n_eval_episodes=2,
+                best_model_save_path=str(tmp_path / "best"),
+                log_path=str(tmp_path / "eval"),
+                callback_on_new_best=StopTrainingOnRewardThreshold(reward_threshold=10_000),
+            ),
+            CheckpointCallback(save_freq=128, save_path=str(tmp_path / "ckpt"), name_prefix="pevfa"),
+        ]
+    )
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST)
+    model.learn(256, callback=callbacks)
+    assert (tmp_path / "best" / "best_model.zip").exists() and (tmp_path / "eval" / "evaluations.npz").exists()
+    checkpoint = PPOPeVFA.load(tmp_path / "ckpt" / "pevfa_128_steps")
+    assert checkpoint.num_timesteps == 128
+    # a stopping callback ends training early; the functional-callback form works too
+    stop = StopTrainingOnMaxEpisodes(max_episodes=2)
+    model.learn(10_000, callback=[stop])
+    assert model.num_timesteps < 256 + 10_000
+    calls = []
+    model.learn(64, callback=lambda _locals, _globals: calls.append(1) or True)
+    assert len(calls) == 64
+
+
+@pytest.mark.parametrize("representation", ["opr", "none"])
+def test_dict_observations_with_images(tmp_path, representation):
+    env = SimpleMultiObsEnv(random_start=False)
+    model = PPOPeVFA("MultiInputPolicy", env, representation=representation, **{**FAST, "n_steps": 32})
+    model.learn(64)
+    assert model.history.n_state_action_pairs == 0  # no state-action pairs with image observations
+    obs, _ = env.reset()
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    with pytest.raises(ValueError, match="image"):
+        PPOPeVFA("MultiInputPolicy", env, representation="spr", **FAST)
+
+
+@pytest.mark.parametrize("discrete", [True, False])
+def test_cnn_policy_encodes_the_mlp_head(tmp_path, discrete):
+    env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=1, discrete=discrete)
+    model = PPOPeVFA("CnnPolicy", env, **{**FAST, "n_steps": 32, "batch_size": 16})
+    # default CNN architecture: no MLP between the features and the action layer, which OPR encodes alone
+    n_outputs = model.action_space.n if discrete else model.action_space.shape[0]
+    assert model.policy.layout.linear_shapes == ((n_outputs, 512),)
+    model.learn(64)
+    obs, _ = env.reset()
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+def test_train_eval_mode():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST).learn(128)
+    policy = model.policy
+    policy.set_training_mode(False)
+    assert not policy.training and not policy.representation.training
+    obs = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(4)]))
+    with th.no_grad():
+        # evaluation mode: all state-action pairs are used, values are deterministic
+        assert th.equal(policy.predict_values(obs), policy.predict_values(obs))
+        policy.set_training_mode(True)
+        assert policy.training and policy.representation.training
+        # training mode: a random 80 % of the pairs at every call
+        assert not th.equal(policy.predict_values(obs), policy.predict_values(obs))
+
+
+@pytest.mark.parametrize("share_features_extractor", [True, False])
+def test_gsde_and_separate_features_extractor(share_features_extractor):
+    model = PPOPeVFA(
+        "MlpPolicy",
+        "Pendulum-v1",
+        use_sde=True,
+        sde_sample_freq=4,
+        policy_kwargs=dict(share_features_extractor=share_features_extractor, log_std_init=-1.0),
+        **FAST,
+    )
+    # gSDE: the log-std is a matrix, flattened into the layout
+    assert model.policy.layout.log_std_shape == (64, 1)
+    model.learn(128)
+    assert get_device(model.device).type == "cpu"
