@@ -23,6 +23,9 @@ setup(
         "torch>=2.3,<3.0",
         "gymnasium>=1.0",
         "numpy>=1.24",
+        # learn(progress_bar=True)
+        "tqdm",
+        "rich",
     ],
     extras_require={
         "mujoco": ["gymnasium[mujoco]>=1.0"],

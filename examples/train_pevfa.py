@@ -1,7 +1,7 @@
 """Train PPOPeVFA on a Gymnasium task, evaluate it, and save the model and its policy history.
 
-    python examples/train_pevfa.py --env CartPole-v1 --timesteps 30000
-    python examples/train_pevfa.py --env Hopper-v5 --timesteps 100000 --representation spr   # needs mujoco
+python examples/train_pevfa.py --env CartPole-v1 --timesteps 30000
+python examples/train_pevfa.py --env Hopper-v5 --timesteps 100000 --representation spr   # needs mujoco
 """
 
 import argparse

@@ -324,3 +324,16 @@ def test_policy_without_record_uses_live_parameters():
     with pytest.raises(RuntimeError, match="recorded policy"):
         spr.policy.predict_values(obs)
     assert isinstance(model.policy, PeVFAActorCriticPolicy)
+
+
+def test_user_workflow_from_the_readme(tmp_path):
+    """The README's snippet on a MuJoCo task, at a tiny budget."""
+    model = PPOPeVFA("MlpPolicy", "InvertedPendulum-v5", representation="opr", verbose=1, **FAST)
+    model.learn(128, progress_bar=True)
+    model.save(tmp_path / "hopper")
+    model.save_history(tmp_path / "hopper_history")
+    model = PPOPeVFA.load(tmp_path / "hopper", env=None)
+    assert model.env is None
+    model.load_history(tmp_path / "hopper_history")
+    model.learn(64, reset_num_timesteps=False)
+    assert model.num_timesteps == 192 and model.history.n_policies == 4

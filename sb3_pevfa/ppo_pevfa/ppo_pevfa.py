@@ -11,6 +11,7 @@ from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, ConvertCallback
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
@@ -170,6 +171,8 @@ class PPOPeVFA(PPO):
             raise
         if self.env is not None:
             _check_observation_space(self.observation_space)
+        # Kept so that a model loaded without an env (env=None) can still learn on: see learn()
+        self.env_id = env if isinstance(env, str) else None
         self.representation = representation
         self.embedding_dim = embedding_dim
         self.critic_learning_rate = critic_learning_rate
@@ -372,6 +375,9 @@ class PPOPeVFA(PPO):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfPPOPeVFA:
+        if self.env is None and self.env_id is not None:
+            # Loaded with env=None from a model that was built from an env id: rebuild that env (seeded).
+            self.set_env(make_vec_env(self.env_id, n_envs=self.n_envs, seed=self.seed))
         return super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
