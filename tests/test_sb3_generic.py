@@ -1,6 +1,7 @@
 """SB3's generic algorithm checks (save/load, predict, callbacks, determinism, spaces, dict and image
 observations, train/eval mode) with PPOPeVFA in place of PPO."""
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -25,6 +26,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.utils import get_device
 
 from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.ppo_pevfa import MlpPolicy
 
 SPACE_ENVS = {
     "discrete": lambda: IdentityEnv(10),
@@ -153,3 +155,56 @@ def test_gsde_and_separate_features_extractor(share_features_extractor):
     assert model.policy.layout.log_std_shape == (64, 1)
     model.learn(128)
     assert get_device(model.device).type == "cpu"
+
+
+class _ObservationSpaceEnv(gym.Env):
+    """Random observations of a given space (SB3's test_spaces style)."""
+
+    def __init__(self, observation_space):
+        self.observation_space, self.action_space = observation_space, gym.spaces.Discrete(2)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.observation_space.seed(seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, bool(self.np_random.random() < 0.1), {}
+
+
+@pytest.mark.parametrize(
+    "observation_space",
+    [
+        gym.spaces.Discrete(5),
+        gym.spaces.MultiDiscrete([3, 4]),
+        gym.spaces.MultiBinary(3),
+        gym.spaces.Box(-1, 1, (2, 3), np.float64),
+    ],
+)
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_observation_spaces(tmp_path, observation_space, representation):
+    env = _ObservationSpaceEnv(observation_space)
+    model = PPOPeVFA("MlpPolicy", env, representation=representation, **{**FAST, "n_steps": 32, "batch_size": 16})
+    model.learn(96)
+    obs = np.stack([observation_space.sample() for _ in range(3)])
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+def test_policy_save_load_and_other_number_of_envs(tmp_path):
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation="spr", **FAST).learn(64)
+    model.policy.save(tmp_path / "policy.pth")
+    policy = MlpPolicy.load(tmp_path / "policy.pth")
+    # like dropout, SPR subsamples its pairs in training mode: compare in evaluation mode
+    policy.set_training_mode(False)
+    model.policy.set_training_mode(False)
+    obs = th.zeros(2, 4)
+    with th.no_grad():
+        assert th.equal(policy.predict_values(obs), model.policy.predict_values(obs))
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
+    # as in SB3, a model is loaded with another number of envs through load(path, env)
+    more_envs = PPOPeVFA.load(tmp_path / "model", env=make_vec_env("CartPole-v1", n_envs=2))
+    more_envs.load_history(tmp_path / "history")
+    more_envs.learn(128, reset_num_timesteps=False)
+    assert more_envs.history.n_samples == 64 + 128
