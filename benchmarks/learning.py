@@ -82,6 +82,32 @@ def report(out: pathlib.Path) -> str:
     return "\n".join(lines)
 
 
+def plot(out: pathlib.Path, png: pathlib.Path) -> None:
+    """Learning curves per env: mean over seeds with a band of one std, every variant."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results: dict[str, dict[str, list[dict]]] = {}
+    for path in sorted(out.glob("*.json")):
+        result = json.loads(path.read_text())
+        results.setdefault(result["env"], {}).setdefault(result["variant"], []).append(result)
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    for ax, (env_id, variants) in zip(axes[0], sorted(results.items())):
+        for variant, runs in sorted(variants.items()):
+            n = min(len(r["curve"]) for r in runs)
+            steps = np.array([c["timesteps"] for c in runs[0]["curve"][:n]])
+            returns = np.array([[c["mean_return"] for c in r["curve"][:n]] for r in runs])
+            mean, std = returns.mean(axis=0), returns.std(axis=0)
+            ax.plot(steps, mean, label=f"{variant} ({len(runs)} seeds)")
+            ax.fill_between(steps, mean - std, mean + std, alpha=0.2)
+        ax.set(title=env_id, xlabel="environment steps", ylabel="average return (10 episodes)")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Hopper-v5")
@@ -93,6 +119,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
+    parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.report:
@@ -105,6 +132,8 @@ def main() -> None:
         with mp.get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
             pool.starmap(run, jobs, chunksize=1)
     print(report(args.out))
+    if args.plot is not None:
+        plot(args.out, args.plot)
 
 
 if __name__ == "__main__":

@@ -196,6 +196,11 @@ class PolicyHistory:
             del self._policies[oldest], self._policy_info[oldest], self._sample_counts[oldest]
         return policy_id
 
+    def sample_policy_ids(self, n: int) -> np.ndarray:
+        """``n`` distinct recorded policies drawn uniformly (all of them if fewer are recorded)."""
+        ids = np.fromiter(self._policies, dtype=np.int64, count=len(self._policies))
+        return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
+
     def policy_data(self, policy_ids: np.ndarray | list[int]) -> dict[str, np.ndarray]:
         """Stacked raw data of the given policies: ``{field: (P, ...)}``."""
         records = [self._policies[int(pid)] for pid in policy_ids]

@@ -14,8 +14,20 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_pevfa.common.critics import PeVFAValueHead
+from sb3_pevfa.common.objectives import OBJECTIVES, make_objective
 from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, has_image, state_dim
 from sb3_pevfa.common.representations import PolicyRepresentation, make_representation
+
+
+def _check_objectives(objectives: tuple[str, ...], objective_kwargs: dict[str, dict[str, Any]]) -> None:
+    unknown = [name for name in objectives if name not in OBJECTIVES]
+    if unknown:
+        raise ValueError(f"Unknown representation objectives {unknown}, valid choices: {OBJECTIVES}")
+    if len(set(objectives)) != len(objectives):
+        raise ValueError(f"representation_objectives lists an objective twice: {objectives}")
+    unused = sorted(set(objective_kwargs) - set(objectives))
+    if unused:
+        raise ValueError(f"objective_kwargs given for {unused}, which are not in representation_objectives={objectives}")
 
 
 class _BoundValueNet(nn.Module):
@@ -56,6 +68,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param critic_head_arch: Layers after the streams are combined (paper: [128])
     :param critic_combine: ``concat`` (paper) or ``product``
     :param critic_activation_fn: Activation of the embedding stream and head (default: ``activation_fn``)
+    :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
+    :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
+        (see :mod:`sb3_pevfa.common.objectives`)
     """
 
     def __init__(
@@ -74,6 +89,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         critic_head_arch: list[int] | tuple[int, ...] = (128,),
         critic_combine: str = "concat",
         critic_activation_fn: type[nn.Module] | None = None,
+        representation_objectives: tuple[str, ...] | list[str] = (),
+        objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
     ):
         if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
@@ -92,6 +109,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.critic_head_arch = list(critic_head_arch)
         self.critic_combine = critic_combine
         self.critic_activation_fn = critic_activation_fn
+        self.representation_objectives = tuple(representation_objectives)
+        self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
+        _check_objectives(self.representation_objectives, self.objective_kwargs)
         self._critic_frozen = False
         self._embedding_cache: th.Tensor | None = None
         super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
@@ -124,8 +144,16 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.register_buffer("behaviour_actions", th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)))
         self.register_buffer("behaviour_codes", th.zeros(self.code_dim))
         self.register_buffer("has_behaviour", th.zeros((), dtype=th.bool))
-        critic_ids = {id(p) for p in self.critic_parameters()}
-        actor_params = [p for p in self.parameters() if id(p) not in critic_ids]
+        self.objectives = nn.ModuleDict(
+            {
+                name: make_objective(
+                    name, self.representation, self.observation_space, self.action_space, **self.objective_kwargs.get(name, {})
+                )
+                for name in self.representation_objectives
+            }
+        )
+        excluded = {id(p) for p in [*self.critic_parameters(), *self.objectives.parameters()]}
+        actor_params = [p for p in self.parameters() if id(p) not in excluded]
         self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
             [
                 {"params": actor_params, "name": "actor"},
@@ -134,6 +162,11 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             lr=lr_schedule(1),
             **self.optimizer_kwargs,
         )
+        # One optimizer per objective: the shared encoder and the objective's own modules, at the objective's rate.
+        for name, objective in self.objectives.items():
+            params = [*self.representation.parameters(), *(p for p in objective.parameters() if p.requires_grad)]
+            optimizer = self.optimizer_class(params, lr=objective.learning_rate, **self.optimizer_kwargs)  # type: ignore[call-arg]
+            setattr(self, f"{name}_optimizer", optimizer)
 
     def critic_parameters(self) -> Iterator[nn.Parameter]:
         """Parameters trained by the value loss only: state stream, embedding stream, head and representation.
@@ -156,6 +189,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             critic_head_arch=self.critic_head_arch,
             critic_combine=self.critic_combine,
             critic_activation_fn=self.critic_activation_fn,
+            representation_objectives=self.representation_objectives,
+            objective_kwargs=self.objective_kwargs,
         )
         return data
 

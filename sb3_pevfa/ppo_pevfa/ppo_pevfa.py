@@ -65,6 +65,10 @@ class PPOPeVFA(PPO):
     :param embedding_dim: Size of chi (``opr``, ``spr``, ``random``)
     :param representation_kwargs: Keyword arguments of the representation
     :param n_state_action_pairs: State-action pairs recorded per policy (SPR's data; 0 for image observations)
+    :param representation_objectives: Extra encoder objectives besides the end-to-end value loss: any of
+        ``"cl"`` (contrastive, InfoNCE with a momentum encoder) and ``"aux"`` (action prediction); ``opr``/``spr`` only
+    :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16, "momentum": 0.05}}``
+        (see :mod:`sb3_pevfa.common.objectives`)
     :param critic_learning_rate: Learning rate of the critic and encoder (float or schedule); None: ``learning_rate``
         (paper: actor 1e-4, critic 1e-3)
     :param update_order: ``joint`` (SB3) or ``critic_first`` (paper)
@@ -111,6 +115,8 @@ class PPOPeVFA(PPO):
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
         n_state_action_pairs: int = 200,
+        representation_objectives: tuple[str, ...] | list[str] = (),
+        objective_kwargs: dict[str, dict[str, Any]] | None = None,
         critic_learning_rate: float | Schedule | None = None,
         update_order: str = "joint",
         value_target_lambda: float | None = None,
@@ -130,6 +136,8 @@ class PPOPeVFA(PPO):
             embedding_dim=embedding_dim,
             representation_kwargs=representation_kwargs,
             n_state_action_pairs=n_state_action_pairs,
+            representation_objectives=tuple(representation_objectives),
+            objective_kwargs=objective_kwargs,
         )
         policy_kwargs = dict(policy_kwargs or {})
         clash = sorted(set(policy_kwargs) & set(pevfa_policy_kwargs))
@@ -184,6 +192,7 @@ class PPOPeVFA(PPO):
         self.history_train_freq = history_train_freq
         self.history_learning_starts = history_learning_starts
         self._history_credit = 0
+        self._objective_credit: dict[str, int] = {}
         self._validate_pevfa_arguments(n_state_action_pairs)
         if _init_setup_model:
             self._setup_model()
@@ -250,6 +259,11 @@ class PPOPeVFA(PPO):
         )
         self._history_callback = PolicyHistoryCallback(self.history)
 
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        state_dicts += [f"policy.{name}_optimizer" for name in self.policy.objectives]
+        return state_dicts, variables
+
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "history", "_history_callback"]
 
@@ -298,6 +312,31 @@ class PPOPeVFA(PPO):
             losses.append(loss.item())
         return losses
 
+    def _train_objectives(self) -> dict[str, list[float]]:
+        """CL / AUX steps on batches of recorded policies (Algorithm 3), each on its own schedule and optimizer."""
+        metrics: dict[str, list[float]] = {}
+        for name, objective in self.policy.objectives.items():
+            if self.num_timesteps < objective.learning_starts:
+                continue
+            credit = self._objective_credit.get(name, 0) + self.n_steps * self.n_envs
+            n_updates, self._objective_credit[name] = divmod(credit, objective.train_freq)
+            optimizer = getattr(self.policy, f"{name}_optimizer")
+            metrics[f"{name}_updates"] = []
+            for _ in range(n_updates):
+                policy_ids = self.history.sample_policy_ids(objective.batch_policies)
+                if len(policy_ids) < 2:  # a contrast needs negatives; AUX waits as well
+                    break
+                data = PolicyData.from_numpy(self.history.policy_data(policy_ids), self.device)
+                loss, values = objective.loss(self.policy.representation, data)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                objective.after_step(self.policy.representation)
+                for key, value in values.items():
+                    metrics.setdefault(key, []).append(value)
+                metrics[f"{name}_updates"].append(1.0)
+        return metrics
+
     def _rollout_observations(self) -> PyTorchObs:
         """All observations of the rollout buffer as one flat batch (without touching the buffer's layout)."""
         buffer = self.rollout_buffer
@@ -343,7 +382,10 @@ class PPOPeVFA(PPO):
     def train(self) -> None:
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
+        objective_metrics = self._train_objectives()
         history_losses = self._train_on_history()
+        for key, values in objective_metrics.items():
+            self.logger.record(f"pevfa/{key}", len(values) if key.endswith("_updates") else float(np.mean(values)))
         if self.update_order == "critic_first":
             critic_losses = self._train_critic_on_rollout()
             self.logger.record("pevfa/critic_value_loss", float(np.mean(critic_losses)))

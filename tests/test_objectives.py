@@ -1,0 +1,164 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from conftest import FAST, read_progress
+from stable_baselines3.common.policies import ActorCriticPolicy
+
+from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.common.objectives import ActionPredictionObjective, ContrastiveObjective, make_objective
+from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, snapshot_policy
+from sb3_pevfa.common.representations import make_representation
+
+OBS = gym.spaces.Box(-1, 1, (4,), np.float32)
+
+
+def _synthetic_policies(action_space, n_policies=48, n_pairs=64, seed=0) -> tuple[ActorLayout, PolicyData]:
+    """Randomly initialised small actors with decisive action heads, probed at shared random states."""
+    rng = np.random.default_rng(seed)
+    probe = rng.uniform(-1, 1, (n_pairs, 4)).astype(np.float32)
+    records, layout = [], None
+    for i in range(n_policies):
+        th.manual_seed(seed * 1000 + i)
+        policy = ActorCriticPolicy(
+            OBS, action_space, lambda _: 1e-3, net_arch=dict(pi=[16, 16], vf=[8]), ortho_init=False, log_std_init=-1.5
+        )
+        with th.no_grad():
+            policy.action_net.weight.mul_(10.0)
+        layout = layout or ActorLayout.from_policy(policy)
+        records.append(snapshot_policy(policy, layout, probe, np.zeros(0)))
+    return layout, PolicyData.from_numpy({k: np.stack([r[k] for r in records]) for k in records[0]})
+
+
+def _train(objective, representation, data, steps, batch, seed=0):
+    optimizer = th.optim.Adam([*representation.parameters(), *(p for p in objective.parameters() if p.requires_grad)], lr=1e-3)
+    generator = np.random.default_rng(seed)
+    for _ in range(steps):
+        index = th.as_tensor(generator.choice(len(data.params), size=batch, replace=False))
+        loss, _ = objective.loss(representation, PolicyData(*(field[index] for field in data)))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        objective.after_step(representation)
+
+
+@pytest.mark.parametrize("name", ["opr", "spr"])
+def test_contrastive_learning_separates_policies(name):
+    th.manual_seed(0)
+    layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)))
+    representation = make_representation(name, layout, OBS, gym.spaces.Box(-1, 1, (2,)), embedding_dim=32)
+    objective = ContrastiveObjective(representation, batch_policies=16)
+    batch = PolicyData(*(field[:16] for field in data))
+    with th.no_grad():
+        _, before = objective.loss(representation, batch)
+    _train(objective, representation, data, steps=500, batch=16)
+    with th.no_grad():
+        accuracy = np.mean([objective.loss(representation, batch)[1]["cl_accuracy"] for _ in range(10)])
+    # chance is 1/16
+    assert accuracy > 0.4 and accuracy > before["cl_accuracy"] + 0.2
+    # the momentum encoder followed the online one, slowly
+    online = th.cat([p.flatten() for p in representation.parameters()])
+    key = th.cat([p.flatten() for p in objective.key_encoder.parameters()])
+    assert not th.equal(online, key) and th.allclose(online, key, atol=0.5)
+
+
+@pytest.mark.parametrize(
+    "action_space", [gym.spaces.Box(-1, 1, (2,)), gym.spaces.Discrete(3), gym.spaces.MultiDiscrete([2, 3])]
+)
+@pytest.mark.parametrize("name", ["opr", "spr"])
+def test_action_prediction_lowers_nll(name, action_space):
+    th.manual_seed(0)
+    layout, data = _synthetic_policies(action_space)
+    representation = make_representation(name, layout, OBS, action_space, embedding_dim=32)
+    objective = ActionPredictionObjective(representation, OBS, action_space, pairs_per_policy=16)
+
+    def nll(shuffle=False):
+        with th.no_grad():
+            embeddings = representation(data)
+            if shuffle:  # every policy gets another policy's embedding
+                embeddings = embeddings.roll(1, dims=0)
+            return objective.negative_log_likelihood(embeddings, data.states, data.actions).item()
+
+    untrained = nll()
+    _train(objective, representation, data, steps=300, batch=16)
+    assert nll() < untrained - 0.2
+    # the decoder relies on the embedding: another policy's embedding predicts this policy's actions worse
+    assert nll() < nll(shuffle=True) - 0.1
+
+
+def test_objective_errors():
+    layout, _ = _synthetic_policies(gym.spaces.Discrete(2), n_policies=1)
+    for name in ("random", "rpr", "stats", "none"):
+        representation = make_representation(name, layout, OBS, gym.spaces.Discrete(2), embedding_dim=8)
+        with pytest.raises(ValueError, match="needs representation 'opr' or 'spr'"):
+            make_objective("cl", representation, OBS, gym.spaces.Discrete(2))
+    opr = make_representation("opr", layout, OBS, gym.spaces.Discrete(2))
+    with pytest.raises(ValueError, match="valid choices"):
+        make_objective("byol", opr, OBS, gym.spaces.Discrete(2))
+    with pytest.raises(ValueError, match="momentum"):
+        make_objective("cl", opr, OBS, gym.spaces.Discrete(2), momentum=2.0)
+    with pytest.raises(ValueError, match="batch_policies"):
+        make_objective("aux", opr, OBS, gym.spaces.Discrete(2), batch_policies=0)
+    with pytest.raises(TypeError):
+        make_objective("aux", opr, OBS, gym.spaces.Discrete(2), mask_ratio=0.1)
+    cases = [
+        (dict(representation="random", representation_objectives=("cl",)), "needs representation"),
+        (dict(representation_objectives=("cl", "cl")), "twice"),
+        (dict(representation_objectives=("contrastive",)), "valid choices"),
+        (dict(representation_objectives=("cl",), objective_kwargs={"aux": {}}), "not in representation_objectives"),
+    ]
+    for kwargs, match in cases:
+        with pytest.raises(ValueError, match=match):
+            PPOPeVFA("MlpPolicy", "CartPole-v1", **kwargs)
+
+
+OBJECTIVE_FAST = {"learning_starts": 0, "train_freq": 16}
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+@pytest.mark.parametrize("objectives", [("cl",), ("aux",), ("cl", "aux")])
+def test_objectives_in_training(env_id, representation, objectives, csv_logger):
+    model = PPOPeVFA(
+        "MlpPolicy",
+        env_id,
+        representation=representation,
+        representation_objectives=objectives,
+        objective_kwargs={name: OBJECTIVE_FAST for name in objectives},
+        **FAST,
+    )
+    model.set_logger(csv_logger[0])
+    encoder_before = [p.detach().clone() for p in model.policy.representation.parameters()]
+    model.learn(256)
+    last = read_progress(csv_logger[1])[-1]
+    for name in objectives:
+        assert int(last[f"pevfa/{name}_updates"]) == 4
+    if "cl" in objectives:
+        assert 0 <= float(last["pevfa/cl_accuracy"]) <= 1 and float(last["pevfa/cl_loss"]) > 0
+    if "aux" in objectives:
+        assert np.isfinite(float(last["pevfa/aux_nll"]))
+    assert any(not th.equal(a, b) for a, b in zip(encoder_before, model.policy.representation.parameters()))
+
+
+def test_save_load_with_both_objectives(tmp_path):
+    model = PPOPeVFA(
+        "MlpPolicy",
+        "Pendulum-v1",
+        representation="spr",
+        representation_objectives=("cl", "aux"),
+        objective_kwargs={"cl": {**OBJECTIVE_FAST, "batch_policies": 8}, "aux": OBJECTIVE_FAST},
+        **FAST,
+    )
+    model.learn(192)
+    model.save(tmp_path / "model")
+    loaded = PPOPeVFA.load(tmp_path / "model")
+    assert loaded.policy.representation_objectives == ("cl", "aux")
+    assert loaded.policy.objectives["cl"].batch_policies == 8
+    for name in ("cl", "aux"):
+        saved, restored = getattr(model.policy, f"{name}_optimizer"), getattr(loaded.policy, f"{name}_optimizer")
+        assert len(restored.state) == len(saved.state) > 0
+        for key, state in saved.state_dict()["state"].items():
+            assert th.equal(state["exp_avg"], restored.state_dict()["state"][key]["exp_avg"])
+    for (name, a), b in zip(model.policy.state_dict().items(), loaded.policy.state_dict().values()):
+        assert th.equal(a, b), name
+    assert "objectives.cl.key_encoder.projection.weight" in loaded.policy.state_dict()
