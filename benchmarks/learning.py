@@ -26,6 +26,15 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr": dict(representation="opr"),
     "pevfa-spr": dict(representation="spr"),
     "pevfa-opr-critic-first": dict(representation="opr", update_order="critic_first"),
+    "pevfa-opr-cl": dict(representation="opr", representation_objectives=("cl",)),
+    "pevfa-spr-aux": dict(representation="spr", representation_objectives=("aux",)),
+    "pevfa-opr-paper": dict(
+        representation="opr",
+        update_order="critic_first",
+        value_target_lambda=1.0,
+        learning_rate=1e-4,
+        critic_learning_rate=1e-3,
+    ),
 }
 
 
@@ -34,6 +43,7 @@ def run(variant: str, env_id: str, seed: int, timesteps: int, eval_freq: int, ev
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.logger import configure
 
     from sb3_pevfa import PPOPeVFA
 
@@ -42,6 +52,8 @@ def run(variant: str, env_id: str, seed: int, timesteps: int, eval_freq: int, ev
     eval_env = make_vec_env(env_id, n_envs=1, seed=seed + 10_000)
     options = VARIANTS[variant]
     model = PPO("MlpPolicy", env, seed=seed) if options is None else PPOPeVFA("MlpPolicy", env, seed=seed, **options)
+    # SB3's train/* and PeVFA's pevfa/* logs of every run, for diagnostics
+    model.set_logger(configure(str(out / "logs" / f"{env_id}_{variant}_seed{seed}"), ["csv"]))
     curve, start = [], time.perf_counter()
     for _ in range(timesteps // eval_freq):
         model.learn(eval_freq, reset_num_timesteps=False)
