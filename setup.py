@@ -15,7 +15,14 @@ setup(
     long_description=long_description,
     long_description_content_type="text/markdown",
     packages=[package for package in find_packages() if package.startswith("sb3_pevfa")],
-    package_data={"sb3_pevfa": ["py.typed", "version.txt"]},
+    package_data={"sb3_pevfa": ["py.typed", "version.txt", "hyperparams/*.yml"]},
+    entry_points={
+        "console_scripts": [
+            "sb3-pevfa-train=sb3_pevfa.train:main",
+            "sb3-pevfa-enjoy=sb3_pevfa.enjoy:main",
+            "sb3-pevfa-record-video=sb3_pevfa.record_video:main",
+        ]
+    },
     python_requires=">=3.10",
     install_requires=[
         "stable_baselines3>=2.4.0,<3.0",
@@ -29,8 +36,24 @@ setup(
     ],
     extras_require={
         "mujoco": ["gymnasium[mujoco]>=1.0"],
-        "zoo": ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=3.0", "requests", "seaborn"],
-        "tests": ["pytest", "pytest-xdist", "ruff", "gymnasium[mujoco]>=1.0"],
+        # rl-zoo3's enjoy imports `requests`, its plots need `seaborn` and its Optuna report `pandas`, undeclared by it;
+        # PostgreSQL storages of Optuna need psycopg (SQLAlchemy 2 default driver).
+        "zoo": ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=3.0", "requests", "seaborn", "pandas", "psycopg[binary]"],
+        "tests": [
+            "pytest",
+            "pytest-xdist",
+            "ruff",
+            "gymnasium[mujoco]>=1.0",
+            "rl_zoo3>=2.4.0",
+            "sb3-contrib>=2.4.0",
+            "optuna>=3.0",
+            "requests",
+            "seaborn",
+            "pandas",
+            "psycopg[binary]",
+            # rl-zoo3's record_video of classic-control tasks renders with pygame
+            "gymnasium[classic-control]",
+        ],
         "docs": ["matplotlib", "scikit-learn"],
     },
     license="MIT",

@@ -284,10 +284,13 @@ class PolicyHistory:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | pathlib.Path) -> None:
-        """Save to a ``.npz`` file (format version, signature, RNG state, policies and samples)."""
+        """Save as a numpy ``.npz`` archive (format version, signature, RNG state, policies and samples).
+
+        A path without a suffix gets ``.npz``; a path with one is used as given (e.g. rl-zoo3's ``replay_buffer.pkl``).
+        """
         path = pathlib.Path(path)
-        if path.suffix != ".npz":
-            path = path.with_suffix(path.suffix + ".npz")
+        if not path.suffix:
+            path = path.with_suffix(".npz")
         ids = self.policy_ids
         meta = {
             "format_version": HISTORY_FORMAT_VERSION,
@@ -300,7 +303,8 @@ class PolicyHistory:
         arrays = {f"policy/{name}": array for name, array in self.policy_data(ids).items()} if ids else {}
         arrays.update({f"sample/{name}": array for name, array in self._samples.get(np.arange(self.n_samples)).items()})
         os.makedirs(path.parent, exist_ok=True)
-        np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
+        with open(path, "wb") as handle:  # a file handle: numpy adds no suffix
+            np.savez(handle, meta=np.array(json.dumps(meta)), **arrays)
 
     def load(self, path: str | pathlib.Path) -> "PolicyHistory":
         """Load a history saved by :meth:`save` into this (empty or not) history; the file must match its signature.
@@ -308,8 +312,8 @@ class PolicyHistory:
         This history's bounds apply: if the file holds more, the newest policies and samples are kept.
         """
         path = pathlib.Path(path)
-        if not path.exists() and path.with_suffix(path.suffix + ".npz").exists():
-            path = path.with_suffix(path.suffix + ".npz")
+        if not path.exists() and not path.suffix:
+            path = path.with_suffix(".npz")
         with np.load(path, allow_pickle=False) as archive:
             meta = json.loads(str(archive["meta"]))
             if meta.get("format_version") != HISTORY_FORMAT_VERSION:

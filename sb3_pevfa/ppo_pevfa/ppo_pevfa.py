@@ -438,6 +438,17 @@ class PPOPeVFA(PPO):
         """Load a history saved by :meth:`save_history`; it must match this model (representation, spaces, actor)."""
         self.history.load(path)
 
+    def save_replay_buffer(self, path: str | pathlib.Path) -> None:
+        """Alias of :meth:`save_history`, the name rl-zoo3's ``--save-replay-buffer`` calls."""
+        self.save_history(path)
+
+    def load_replay_buffer(self, path: str | pathlib.Path, truncate_last_traj: bool = True) -> None:
+        """Alias of :meth:`load_history`, the name rl-zoo3's ``-i`` (continue training) calls.
+
+        :param truncate_last_traj: Ignored (a HER replay buffer option of SB3)
+        """
+        self.load_history(path)
+
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
         # The global RNG states travel with the model so that a resumed run continues as an uninterrupted one.
         self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}

@@ -1,0 +1,16 @@
+"""Watch / evaluate a trained agent with rl-zoo3's `enjoy` (every flag of it).
+
+python -m sb3_pevfa.enjoy --algo ppo_pevfa --env Hopper-v5 -f logs/
+"""
+
+from sb3_pevfa.rl_zoo import run_zoo_script
+
+
+def main(argv: list[str] | None = None) -> None:
+    from rl_zoo3.enjoy import enjoy as script
+
+    run_zoo_script(script, argv, default_config=False)
+
+
+if __name__ == "__main__":
+    main()

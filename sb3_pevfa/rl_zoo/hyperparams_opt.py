@@ -1,0 +1,89 @@
+"""Optuna sampler and trial converter of ``ppo_pevfa`` for rl-zoo3: PPO's parameters plus PeVFA's."""
+
+from typing import Any
+
+import optuna
+from rl_zoo3.hyperparams_opt import convert_onpolicy_params, sample_ppo_params
+
+#: Raw (trial) parameters that belong to PeVFA; the rest are rl-zoo3's PPO parameters.
+PEVFA_PARAMS = (
+    "representation",
+    "objectives",
+    "embedding_dim",
+    "history_buffer_size_pow",
+    "history_train_freq",
+    "critic_learning_rate",
+)
+
+#: Name of the search space used by :func:`sample_ppo_pevfa_params` (``"full"`` or ``"small"``, for tests).
+SEARCH_SPACE = {"name": "full"}
+
+
+def convert_pevfa_params(sampled: dict[str, Any]) -> dict[str, Any]:
+    """Raw PeVFA trial parameters -> PPOPeVFA constructor arguments."""
+    params: dict[str, Any] = {}
+    if "representation" in sampled:
+        params["representation"] = sampled["representation"]
+    objectives = sampled.get("objectives", "e2e")
+    params["representation_objectives"] = () if objectives == "e2e" else tuple(objectives.split("+"))
+    if "embedding_dim" in sampled:
+        params["embedding_dim"] = sampled["embedding_dim"]
+    if "history_buffer_size_pow" in sampled:
+        params["history_buffer_size"] = 2 ** sampled["history_buffer_size_pow"]
+    for name in ("history_train_freq", "critic_learning_rate"):
+        if name in sampled:
+            params[name] = sampled[name]
+    return params
+
+
+def _with_fixed_params(params: dict[str, Any]) -> dict[str, Any]:
+    """Settings the search space fixes rather than samples."""
+    if SEARCH_SPACE["name"] == "small":  # historical updates and objectives from the first iteration
+        params["history_learning_starts"] = 0
+        params["objective_kwargs"] = {name: {"learning_starts": 0} for name in params["representation_objectives"]}
+    return params
+
+
+def convert_ppo_pevfa_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """Converter of ``ppo_pevfa`` (``HYPERPARAMS_CONVERTER``): used by ``--trial-id`` to rebuild a trial."""
+    ppo = {key: value for key, value in sampled_params.items() if key not in PEVFA_PARAMS}
+    pevfa = {key: value for key, value in sampled_params.items() if key in PEVFA_PARAMS}
+    return _with_fixed_params({**convert_onpolicy_params(ppo), **convert_pevfa_params(pevfa)})
+
+
+def _sample_small_ppo_params(trial: optuna.Trial) -> dict[str, Any]:
+    """A tiny PPO space (tests): small rollouts and networks."""
+    sampled = {
+        "n_steps_pow": trial.suggest_int("n_steps_pow", 5, 6),
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 4, 5),
+        "one_minus_gamma": trial.suggest_float("one_minus_gamma", 0.01, 0.03, log=True),
+        "one_minus_gae_lambda": trial.suggest_float("one_minus_gae_lambda", 0.02, 0.1, log=True),
+        "learning_rate": trial.suggest_float("learning_rate", 1e-4, 1e-3, log=True),
+        "ent_coef": trial.suggest_float("ent_coef", 1e-8, 1e-2, log=True),
+        "clip_range": trial.suggest_categorical("clip_range", [0.1, 0.2]),
+        "n_epochs": trial.suggest_categorical("n_epochs", [1, 2]),
+        "max_grad_norm": trial.suggest_float("max_grad_norm", 0.3, 2),
+        "net_arch": trial.suggest_categorical("net_arch", ["tiny"]),
+        "activation_fn": trial.suggest_categorical("activation_fn", ["tanh", "relu"]),
+    }
+    return convert_onpolicy_params(sampled)
+
+
+def sample_ppo_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Sampler of ``ppo_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's PPO space plus representation, objectives,
+    embedding size, history size and update frequency, and critic learning rate."""
+    small = SEARCH_SPACE["name"] == "small"
+    ppo = _sample_small_ppo_params(trial) if small else sample_ppo_params(trial, n_actions, n_envs, additional_args)
+    representation = trial.suggest_categorical("representation", ["opr", "spr"] if small else ["opr", "spr", "none"])
+    sampled: dict[str, Any] = {"representation": representation}
+    if representation != "none":
+        sampled["objectives"] = trial.suggest_categorical("objectives", ["e2e", "cl", "aux", "cl+aux"])
+        sampled["embedding_dim"] = trial.suggest_categorical("embedding_dim", [8, 16] if small else [16, 32, 64, 128])
+    sampled["history_buffer_size_pow"] = (
+        trial.suggest_int("history_buffer_size_pow", 10, 12)
+        if small
+        else (trial.suggest_int("history_buffer_size_pow", 14, 19))
+    )
+    sampled["history_train_freq"] = trial.suggest_categorical("history_train_freq", [5, 10, 20, 50])
+    sampled["critic_learning_rate"] = trial.suggest_float("critic_learning_rate", 1e-5, 3e-3, log=True)
+    return _with_fixed_params({**ppo, **convert_pevfa_params(sampled)})

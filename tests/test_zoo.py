@@ -1,0 +1,230 @@
+"""rl-zoo3 and Optuna, through the real rl-zoo3 code paths and real storages, at tiny budgets."""
+
+import os
+import pathlib
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+
+import optuna
+import pytest
+import yaml
+
+from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.common.history import PolicyHistory
+from sb3_pevfa.rl_zoo import ALGO_NAME, HYPERPARAMS_PATH, register
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _run(*args: str, cwd: pathlib.Path) -> str:
+    result = subprocess.run([sys.executable, *args], cwd=cwd, env=ENV, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return result.stdout + result.stderr
+
+
+def _saved_config(path: pathlib.Path) -> dict:
+    """The hyperparameters rl-zoo3 saved with a run (an OrderedDict in YAML)."""
+    return dict(yaml.load(path.read_text(), Loader=yaml.UnsafeLoader))
+
+
+def test_register_is_idempotent_and_fills_the_three_tables():
+    from rl_zoo3 import ALGOS, hyperparams_opt, utils
+
+    register()
+    register()
+    assert utils.ALGOS[ALGO_NAME] is PPOPeVFA and ALGOS is utils.ALGOS
+    assert ALGO_NAME in hyperparams_opt.HYPERPARAMS_SAMPLER and ALGO_NAME in hyperparams_opt.HYPERPARAMS_CONVERTER
+    assert list(utils.ALGOS).count(ALGO_NAME) == 1
+
+
+def test_shipped_hyperparameters():
+    assert (
+        HYPERPARAMS_PATH.is_file()
+        and "site-packages" in str(HYPERPARAMS_PATH)
+        or (ROOT / "sb3_pevfa") in HYPERPARAMS_PATH.parents
+    )
+    assert (ROOT / "hyperparams" / "ppo_pevfa.yml").read_text() == HYPERPARAMS_PATH.read_text()
+    config = yaml.safe_load(HYPERPARAMS_PATH.read_text())
+    tasks = ["Hopper", "HalfCheetah", "Walker2d", "Ant", "InvertedPendulum", "InvertedDoublePendulum", "Swimmer", "Humanoid"]
+    expected = {f"{task}-v5" for task in tasks} | {
+        "CartPole-v1",
+        "Pendulum-v1",
+        "Acrobot-v1",
+        "MountainCarContinuous-v0",
+        "LunarLander-v3",
+    }
+    assert expected <= set(config)
+    zoo_ppo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / "ppo.yml").read_text())
+    for env_id, params in config.items():
+        assert params["representation"] == "opr"
+        source = zoo_ppo.get(env_id, zoo_ppo.get(env_id.replace("-v5", "-v4")))
+        if source is not None:  # the PPO part is rl-zoo3's, unchanged
+            assert {k: v for k, v in params.items() if k not in ("representation", "embedding_dim")} == {
+                **source,
+                "n_timesteps": float(source["n_timesteps"]),
+            }
+
+
+@pytest.fixture(scope="module")
+def zoo_run(tmp_path_factory):
+    """One rl-zoo3 training of ppo_pevfa on CartPole-v1, saving the history as rl-zoo3's replay buffer."""
+    folder = tmp_path_factory.mktemp("zoo")
+    # a constant learning rate (the zoo's CartPole entry decays it to 0 at the last update): every update is a new policy
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "512", "-f", str(folder),
+               "--seed", "0", "--save-replay-buffer", "--eval-freq", "-1", "--hyperparams", "learning_rate:0.001",
+               cwd=folder)  # fmt: skip
+    assert "Loading hyperparameters from: " + str(HYPERPARAMS_PATH) in log
+    return folder
+
+
+def test_zoo_train_enjoy_and_continue_with_history(zoo_run):
+    run = zoo_run / "ppo_pevfa" / "CartPole-v1_1"
+    assert (run / "CartPole-v1.zip").exists() and (run / "replay_buffer.pkl").exists()
+    log = _run("-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-f", str(zoo_run), "-n", "200",
+               "--no-render", cwd=zoo_run)  # fmt: skip
+    assert "Mean reward" in log or "Atari Episode" in log or "Episode Reward" in log
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "256", "-f", str(zoo_run),
+               "-i", str(run / "CartPole-v1.zip"), "--save-replay-buffer", "--eval-freq", "-1", "--hyperparams",
+               "learning_rate:0.001", cwd=zoo_run)  # fmt: skip
+    assert "Loading replay buffer" in log
+    first = PPOPeVFA.load(run / "CartPole-v1.zip")
+    first.load_history(run / "replay_buffer.pkl")
+    second = PPOPeVFA.load(zoo_run / "ppo_pevfa" / "CartPole-v1_2" / "CartPole-v1.zip")
+    second.load_history(zoo_run / "ppo_pevfa" / "CartPole-v1_2" / "replay_buffer.pkl")
+    # the continued run kept every policy of the first one and added its own
+    assert set(first.history.policy_ids) < set(second.history.policy_ids)
+    assert second.history.n_samples == first.history.n_samples + 256
+    assert second.history.policy_info(0)["num_timesteps"] == 0
+
+
+def test_zoo_record_video(zoo_run):
+    out = zoo_run / "videos"
+    _run("-m", "sb3_pevfa.record_video", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-f", str(zoo_run), "-n", "20",
+         "-o", str(out), cwd=zoo_run)  # fmt: skip
+    assert list(out.glob("*.mp4"))
+
+
+def test_zoo_pendulum_and_user_conf_file_wins(tmp_path):
+    conf = tmp_path / "mine.yml"
+    conf.write_text(
+        yaml.safe_dump({"Pendulum-v1": {"policy": "MlpPolicy", "n_timesteps": 1e5, "n_steps": 64, "representation": "spr"}})
+    )
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "Pendulum-v1", "-n", "128", "-f", str(tmp_path),
+               "--conf-file", str(conf), "--eval-freq", "-1", cwd=tmp_path)  # fmt: skip
+    assert f"Loading hyperparameters from: {conf}" in log
+    saved = _saved_config(tmp_path / "ppo_pevfa" / "Pendulum-v1_1" / "Pendulum-v1" / "config.yml")
+    assert saved["representation"] == "spr"
+
+
+def test_zoo_optimize_then_rerun_a_trial(tmp_path):
+    storage = tmp_path / "study.log"
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-optimize", "--n-trials", "2",
+               "-n", "256", "--search-space", "small", "--storage", str(storage), "--study-name", "zoo", "--n-evaluations",
+               "1", "--eval-episodes", "2", "-f", str(tmp_path), "--no-optim-plots", "--seed", "1", cwd=tmp_path)  # fmt: skip
+    assert "Number of finished trials:  2" in log
+    study = optuna.load_study(
+        storage=optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(storage))), study_name="zoo"
+    )
+    params = study.trials[1].params
+    assert {"representation", "history_train_freq", "critic_learning_rate", "n_steps_pow"} <= set(params)
+    # rl-zoo3 skips --trial-id 0 (it tests `if trial_id`): re-run trial 1
+    _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "128", "--search-space", "small",
+         "--storage", str(storage), "--study-name", "zoo", "--trial-id", "1", "-f", str(tmp_path / "rerun"),
+         "--eval-freq", "-1", cwd=tmp_path)  # fmt: skip
+    saved = _saved_config(next((tmp_path / "rerun").rglob("config.yml")))
+    assert saved["representation"] == params["representation"]
+    assert saved["critic_learning_rate"] == pytest.approx(params["critic_learning_rate"])
+    assert saved["n_steps"] == 2 ** params["n_steps_pow"]
+
+
+def _two_workers(storage: str, cwd: pathlib.Path, study_name: str = "shared") -> optuna.Study:
+    command = [sys.executable, str(ROOT / "examples" / "optuna_search.py"), "--storage", storage, "--study-name", study_name,
+               "--n-trials", "2", "--timesteps", "128", "--n-evaluations", "1", "--eval-episodes", "1",
+               "--search-space", "small"]  # fmt: skip
+    # the recipe: create the study (and the database schema) once, then start the workers
+    loaded_storage = (
+        optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
+        if storage.endswith(".log")
+        else storage
+    )
+    optuna.create_study(storage=loaded_storage, study_name=study_name, direction="maximize")
+    workers = [subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)]
+    workers.append(subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    for worker in workers:
+        output, _ = worker.communicate(timeout=600)
+        assert worker.returncode == 0, output[-3000:]
+    study = optuna.load_study(storage=loaded_storage, study_name=study_name)
+    assert len(study.trials) == 4
+    assert len({trial.user_attrs["worker"] for trial in study.trials}) == 2
+    assert all(t.state in (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED) for t in study.trials)
+    return study
+
+
+@pytest.mark.parametrize("kind", ["journal", "sqlite"])
+def test_two_workers_share_one_study(tmp_path, kind):
+    storage = str(tmp_path / "study.log") if kind == "journal" else f"sqlite:///{tmp_path / 'study.db'}"
+    _two_workers(storage, tmp_path)
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def postgres_url():
+    """A throw-away PostgreSQL server on 127.0.0.1 (Debian's postgresql package; .ci/run installs it)."""
+    tmp_path = pathlib.Path(tempfile.mkdtemp(prefix="sb3-pevfa-pg-"))  # outside pytest's 0700 folders
+    candidates = sorted(pathlib.Path("/usr/lib/postgresql").glob("*/bin"))
+    bindir = candidates[-1] if candidates else None
+    initdb = bindir / "initdb" if bindir else shutil.which("initdb")
+    pg_ctl = bindir / "pg_ctl" if bindir else shutil.which("pg_ctl")
+    if not initdb or not pg_ctl or not pathlib.Path(initdb).exists():
+        pytest.skip("No PostgreSQL server binaries (initdb, pg_ctl): install Debian's 'postgresql' package to run this test")
+    as_user: list[str] = []
+    if os.geteuid() == 0:  # PostgreSQL refuses to run as root: use the package's postgres user
+        if shutil.which("runuser") is None:
+            pytest.skip("Running as root without runuser: cannot start PostgreSQL as an unprivileged user")
+        as_user = ["runuser", "-u", "postgres", "--"]
+        shutil.chown(tmp_path, "postgres")
+    data, port = tmp_path / "pgdata", _free_port()
+    started = subprocess.run(
+        [*as_user, str(initdb), "-D", str(data), "-A", "trust", "-U", "postgres"], capture_output=True, text=True
+    )
+    if started.returncode == 0:
+        options = f"-p {port} -k {tmp_path} -c listen_addresses=127.0.0.1"
+        command = [*as_user, str(pg_ctl), "-D", str(data), "-o", options, "-l", str(tmp_path / "pg.log"), "-w", "start"]
+        started = subprocess.run(command, capture_output=True, text=True)
+    if started.returncode != 0:
+        shutil.rmtree(tmp_path, ignore_errors=True)
+        pytest.skip(f"Could not start a PostgreSQL server: {started.stderr.strip()[-500:]}")
+    try:
+        import psycopg
+
+        with psycopg.connect(host="127.0.0.1", port=port, user="postgres", dbname="postgres", autocommit=True) as connection:
+            connection.execute("CREATE DATABASE optuna")
+        yield f"postgresql://postgres@127.0.0.1:{port}/optuna"
+    finally:
+        subprocess.run([*as_user, str(pg_ctl), "-D", str(data), "-m", "immediate", "stop"], capture_output=True)
+        shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_two_workers_share_one_study_on_postgresql(tmp_path, postgres_url):
+    study = _two_workers(postgres_url, tmp_path, study_name="pg")
+    assert study.best_trial is not None or all(t.state == optuna.trial.TrialState.PRUNED for t in study.trials)
+
+
+def test_history_file_keeps_the_zoo_name(tmp_path):
+    history = PolicyHistory(
+        __import__("gymnasium").spaces.Box(-1, 1, (2,)),
+        __import__("gymnasium").spaces.Discrete(2),
+        n_params=3,
+        n_state_action_pairs=0,
+    )
+    history.save(tmp_path / "replay_buffer.pkl")
+    assert (tmp_path / "replay_buffer.pkl").exists() and not (tmp_path / "replay_buffer.pkl.npz").exists()
