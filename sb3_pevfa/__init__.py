@@ -1,5 +1,6 @@
 import os
 
+import sb3_pevfa.envs  # noqa: F401  (registers PointWalker-v0)
 from sb3_pevfa.common.callbacks import PolicyHistoryCallback
 from sb3_pevfa.common.history import PolicyHistory
 from sb3_pevfa.common.representations import REPRESENTATIONS

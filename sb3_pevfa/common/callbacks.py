@@ -14,7 +14,9 @@ class PolicyHistoryCallback(BaseCallback):
     At the start of each rollout the live policy is recorded (flat actor parameters, actions sampled at
     ``n_state_action_pairs`` probe states drawn from the history, and a random code if the history has one),
     unless it is unchanged since the last record. At the end of the rollout its ``(observation, value target)``
-    samples are appended, tagged with its id. At the end of training the final policy is recorded too.
+    samples are appended, tagged with its id, and the mean return of the episodes that ended during the rollout
+    (from SB3's Monitor) is kept as the policy's ``episode_return``. At the end of training the final policy is
+    recorded too.
 
     :class:`~sb3_pevfa.PPOPeVFA` installs one itself; attach one to a plain PPO/A2C run to keep a policy
     history for later analysis (``callback.history.save(path)``).
@@ -38,6 +40,7 @@ class PolicyHistoryCallback(BaseCallback):
         self.n_state_action_pairs = n_state_action_pairs
         self.buffer_size = buffer_size
         self.max_policies = max_policies
+        self._episode_returns: list[float] = []
 
     def _init_callback(self) -> None:
         policy = self.model.policy
@@ -90,13 +93,19 @@ class PolicyHistoryCallback(BaseCallback):
 
     def _on_rollout_start(self) -> None:
         self.record_policy()
+        self._episode_returns = []
 
     def _on_step(self) -> bool:
+        self._episode_returns.extend(info["episode"]["r"] for info in self.locals.get("infos", ()) if "episode" in info)
         return True
 
     def _on_rollout_end(self) -> None:
         buffer = self.model.rollout_buffer
-        self.history.add_samples(buffer.observations, buffer.returns, self.history.latest_policy_id)
+        policy_id = self.history.latest_policy_id
+        self.history.add_samples(buffer.observations, buffer.returns, policy_id)
+        if self._episode_returns:  # episodes (Monitor) that ended during this policy's rollout
+            self.history.update_policy_info(policy_id, episode_return=float(np.mean(self._episode_returns)))
+        self._episode_returns = []
 
     def _on_training_end(self) -> None:
         self.record_policy()

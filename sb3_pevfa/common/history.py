@@ -139,7 +139,7 @@ class PolicyHistory:
         specs["policy_ids"] = ((), np.dtype(np.int64))
         self._samples = _Ring(specs, self.buffer_size)
         self._policies: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
-        self._policy_info: dict[int, dict[str, int]] = {}
+        self._policy_info: dict[int, dict[str, int | float]] = {}
         self._sample_counts: dict[int, int] = {}
         self._next_id = 0
 
@@ -170,11 +170,16 @@ class PolicyHistory:
     def latest_policy_id(self) -> int | None:
         return next(reversed(self._policies)) if self._policies else None
 
-    def policy_info(self, policy_id: int) -> dict[str, int]:
-        """``n_updates`` and ``num_timesteps`` of the model when the policy was recorded."""
+    def policy_info(self, policy_id: int) -> dict[str, int | float]:
+        """``n_updates`` and ``num_timesteps`` of the model when the policy was recorded, and ``episode_return``
+        (mean return of the episodes that ended during its rollout) once known."""
         return dict(self._policy_info[policy_id])
 
-    def add_policy(self, record: dict[str, np.ndarray], n_updates: int = 0, num_timesteps: int = 0) -> int:
+    def update_policy_info(self, policy_id: int, **info: int | float) -> None:
+        """Attach numbers to a recorded policy (saved with the history)."""
+        self._policy_info[policy_id].update(info)
+
+    def add_policy(self, record: dict[str, np.ndarray], n_updates: int = 0, num_timesteps: int = 0, **info: float) -> int:
         """Store one policy's raw data (see :func:`~sb3_pevfa.common.policy_data.snapshot_policy`); returns its id."""
         expected = {
             "params": (self.n_params,),
@@ -188,7 +193,7 @@ class PolicyHistory:
         policy_id = self._next_id
         self._next_id += 1
         self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in POLICY_FIELDS}
-        self._policy_info[policy_id] = {"n_updates": int(n_updates), "num_timesteps": int(num_timesteps)}
+        self._policy_info[policy_id] = {"n_updates": int(n_updates), "num_timesteps": int(num_timesteps), **info}
         self._sample_counts[policy_id] = 0
         while len(self._policies) > self.max_policies:
             oldest = next(iter(self._policies))

@@ -1,0 +1,16 @@
+"""Diagnostics of the paper: local and global value generalization, embedding maps, zero-shot policy values."""
+
+from sb3_pevfa.diagnostics.embedding_maps import plot_embedding_maps, policy_embeddings
+from sb3_pevfa.diagnostics.global_generalization import plot_global_generalization, run_global_generalization
+from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback, plot_local_generalization
+from sb3_pevfa.diagnostics.zero_shot import predict_policy_values
+
+__all__ = [
+    "LocalGeneralizationCallback",
+    "plot_embedding_maps",
+    "plot_global_generalization",
+    "plot_local_generalization",
+    "policy_embeddings",
+    "predict_policy_values",
+    "run_global_generalization",
+]

@@ -1,0 +1,210 @@
+"""Local generalization (paper Sec. 3.2, Fig. 3b / 8, App. B.2): is V(s, chi_{pi_t}) closer to pi_t's returns than
+a conventional V(s), before and after the iteration's critic update?"""
+
+import csv
+import pathlib
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.torch_layers import create_mlp
+from stable_baselines3.common.utils import obs_as_tensor
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_pevfa.common.policy_data import PolicyData, flatten_observations, state_dim
+
+#: The four error curves, in ``pevfa/local_gen/<name>``.
+ERROR_KEYS = ("pevfa_before", "pevfa_after", "vfa_before", "vfa_after")
+
+
+def monte_carlo_returns(rewards: np.ndarray, episode_starts: np.ndarray, last_dones: np.ndarray, gamma: float):
+    """Discounted returns of a rollout ``(n_steps, n_envs)`` and the mask of the states whose episode ended inside
+    the rollout (only those have a complete Monte-Carlo return). Rewards are SB3's, which include its time-out
+    bootstrap."""
+    n_steps = len(rewards)
+    returns = np.zeros_like(rewards, dtype=np.float64)
+    complete = np.zeros_like(rewards, dtype=bool)
+    next_return, next_complete = np.zeros(rewards.shape[1]), np.zeros(rewards.shape[1], dtype=bool)
+    next_start = last_dones.astype(bool)
+    for step in reversed(range(n_steps)):
+        returns[step] = rewards[step] + gamma * next_return * (1.0 - next_start)
+        complete[step] = next_start | next_complete  # an episode of this env ends at or after this step
+        next_return, next_complete, next_start = returns[step], complete[step], episode_starts[step].astype(bool)
+    return returns, complete
+
+
+class LocalGeneralizationCallback(BaseCallback):
+    """Trains a conventional critic V(s) beside a PPOPeVFA run on the same on-policy data and value targets (it never
+    feeds the advantages) and logs, at every iteration, the mean squared error of V(s, chi_{pi_t}) and of V(s) against
+    the Monte-Carlo returns pi_t actually collected, before and after that iteration's critic update:
+    ``pevfa/local_gen/{pevfa_before, pevfa_after, vfa_before, vfa_after}`` (plus ``timesteps`` and ``n_states``).
+
+    The four errors of iteration t are logged together when iteration t+1 starts (the "after" of the PeVFA needs
+    the update), so they appear one log row later; ``pevfa/local_gen/timesteps`` says which rollout they belong to.
+    Only states whose episode ended inside the rollout are scored.
+
+    :param net_arch: Layers of the conventional critic (SB3 PPO's default critic: 64-64, the policy's activation)
+    """
+
+    def __init__(self, net_arch: tuple[int, ...] = (64, 64), verbose: int = 0):
+        super().__init__(verbose)
+        self.net_arch = net_arch
+        self._pending: dict | None = None
+
+    def _init_callback(self) -> None:
+        if not hasattr(self.model, "history"):
+            raise TypeError("LocalGeneralizationCallback needs a PPOPeVFA model")
+        policy = self.model.policy
+        layers = create_mlp(state_dim(policy.observation_space), 1, list(self.net_arch), policy.activation_fn)
+        self.critic = nn.Sequential(*layers).to(self.model.device)
+        self.optimizer = th.optim.Adam(self.critic.parameters(), lr=self.model.lr_schedule(1), eps=1e-5)
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _states(self, observations) -> th.Tensor:
+        return flatten_observations(obs_as_tensor(observations, self.model.device), self.model.observation_space)
+
+    def _train_critic(self, states: th.Tensor, targets: th.Tensor) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.model.lr_schedule(self.model._current_progress_remaining)
+        for _ in range(self.model.n_epochs):
+            for index in th.randperm(len(states)).split(self.model.batch_size):
+                loss = F.mse_loss(self.critic(states[index]).flatten(), targets[index])
+                self.optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.model.max_grad_norm)
+                self.optimizer.step()
+
+    def _on_rollout_end(self) -> None:
+        self._flush()
+        buffer = self.model.rollout_buffer
+        returns, complete = monte_carlo_returns(
+            buffer.rewards, buffer.episode_starts, self.model._last_episode_starts, self.model.gamma
+        )
+        n = buffer.buffer_size * buffer.n_envs
+        observations = (
+            {key: obs.reshape(n, *obs.shape[2:]).copy() for key, obs in buffer.observations.items()}
+            if isinstance(buffer.observations, dict)
+            else buffer.observations.reshape(n, *buffer.observations.shape[2:]).copy()
+        )
+        states = self._states(observations)
+        mask = th.as_tensor(complete.reshape(-1), device=states.device)
+        target = th.as_tensor(returns.reshape(-1), dtype=th.float32, device=states.device)
+        with th.no_grad():
+            vfa_before = self.critic(states).flatten()
+        self._train_critic(states, th.as_tensor(buffer.returns.reshape(-1), device=states.device))
+        with th.no_grad():
+            vfa_after = self.critic(states).flatten()
+        pevfa_before = th.tensor(buffer.values.reshape(-1), device=states.device)
+        self._pending = {
+            "observations": observations,
+            "policy_id": self.model.history.latest_policy_id,
+            "mask": mask,
+            "target": target,
+            "timesteps": self.model.num_timesteps,
+            "pevfa_before": pevfa_before,
+            "vfa_before": vfa_before,
+            "vfa_after": vfa_after,
+        }
+
+    def _error(self, prediction: th.Tensor, pending: dict) -> float:
+        mask = pending["mask"]
+        if not mask.any():
+            return float("nan")
+        return F.mse_loss(prediction[mask], pending["target"][mask]).item()
+
+    def _flush(self) -> None:
+        """Log the errors of the last finished iteration (its critic update is done)."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        policy, history = self.model.policy, self.model.history
+        training = policy.training
+        policy.set_training_mode(False)
+        with th.no_grad():
+            data = PolicyData.from_numpy(history.policy_data([pending["policy_id"]]), self.model.device)
+            observations = obs_as_tensor(pending["observations"], self.model.device)
+            pending["pevfa_after"] = policy.predict_policy_values(observations, policy.embed(data)).flatten()
+        policy.set_training_mode(training)
+        for key in ERROR_KEYS:
+            self.logger.record(f"pevfa/local_gen/{key}", self._error(pending[key], pending))
+        self.logger.record("pevfa/local_gen/timesteps", pending["timesteps"])
+        self.logger.record("pevfa/local_gen/n_states", int(pending["mask"].sum()))
+
+    def _on_rollout_start(self) -> None:
+        self._flush()
+
+    def _on_training_end(self) -> None:
+        self._flush()
+        self.logger.dump(self.num_timesteps)
+
+
+def read_scalars(log: str | pathlib.Path) -> dict[str, np.ndarray]:
+    """Scalars of an SB3 run: a ``progress.csv`` (or a folder holding one), or a TensorBoard event folder."""
+    log = pathlib.Path(log)
+    csv_path = log if log.suffix == ".csv" else log / "progress.csv"
+    if csv_path.exists():
+        with open(csv_path) as handle:
+            rows = list(csv.DictReader(handle))
+        keys = {key for row in rows for key in row}
+        return {key: np.array([float(row[key]) if row.get(key) not in (None, "") else np.nan for row in rows]) for key in keys}
+    try:
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    except ImportError as error:
+        raise FileNotFoundError(f"No progress.csv in {log}, and tensorboard is not installed to read events") from error
+    events = list(log.rglob("events.out.tfevents.*"))
+    if not events:
+        raise FileNotFoundError(f"Neither progress.csv nor TensorBoard events in {log}")
+    accumulator = EventAccumulator(str(events[0].parent))
+    accumulator.Reload()
+    scalars = {}
+    steps = sorted({event.step for tag in accumulator.Tags()["scalars"] for event in accumulator.Scalars(tag)})
+    position = {step: i for i, step in enumerate(steps)}
+    scalars["time/total_timesteps"] = np.array(steps, dtype=float)
+    for tag in accumulator.Tags()["scalars"]:
+        values = np.full(len(steps), np.nan)
+        for event in accumulator.Scalars(tag):
+            values[position[event.step]] = event.value
+        scalars[tag] = values
+    return scalars
+
+
+def plot_local_generalization(log: str | pathlib.Path, png: str | pathlib.Path, title: str = "") -> pathlib.Path:
+    """The paper's Fig. 3b / 8 from a run's logs: the four error curves (log scale) and the return curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scalars = read_scalars(log)
+    if "pevfa/local_gen/pevfa_before" not in scalars:
+        raise ValueError(f"{log} has no pevfa/local_gen/* logs: train with LocalGeneralizationCallback")
+    steps = scalars.get("pevfa/local_gen/timesteps", scalars["time/total_timesteps"])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    styles = {
+        "pevfa_before": ("tab:blue", "-", "PeVFA V(s, chi) before update"),
+        "pevfa_after": ("tab:blue", "--", "PeVFA after update"),
+        "vfa_before": ("tab:red", "-", "conventional V(s) before update"),
+        "vfa_after": ("tab:red", "--", "conventional V(s) after update"),
+    }
+    for key, (color, style, label) in styles.items():
+        values = scalars[f"pevfa/local_gen/{key}"]
+        keep = np.isfinite(values) & np.isfinite(steps)
+        ax.plot(steps[keep], values[keep], style, color=color, label=label)
+    ax.set(yscale="log", xlabel="environment steps", ylabel="MSE to collected returns", title=title)
+    if "rollout/ep_rew_mean" in scalars:
+        twin = ax.twinx()
+        keep = np.isfinite(scalars["rollout/ep_rew_mean"])
+        twin.plot(
+            scalars["time/total_timesteps"][keep], scalars["rollout/ep_rew_mean"][keep], color="tab:green", label="return"
+        )
+        twin.set_ylabel("average episode return", color="tab:green")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    png = pathlib.Path(png)
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png

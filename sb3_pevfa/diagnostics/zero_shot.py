@@ -1,0 +1,81 @@
+"""Zero-shot policy values: the PeVFA's value of a policy at given states, from the policy alone (no rollout)."""
+
+import pathlib
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.utils import obs_as_tensor
+
+from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, snapshot_policy, state_dim
+
+PolicyLike = ActorCriticPolicy | BaseAlgorithm | str | pathlib.Path | dict | np.ndarray
+
+
+def _batch_size(observations) -> int:
+    return len(next(iter(observations.values()))) if isinstance(observations, dict) else len(observations)
+
+
+def _take(observations, index: np.ndarray):
+    return (
+        {key: value[index] for key, value in observations.items()} if isinstance(observations, dict) else observations[index]
+    )
+
+
+def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
+    """The raw data of ``policy`` in the history's record format."""
+    if isinstance(policy, (str, pathlib.Path)):
+        from sb3_pevfa import PPOPeVFA
+
+        policy = PPOPeVFA.load(policy, device=model.device)
+    if isinstance(policy, BaseAlgorithm):
+        policy = policy.policy
+    if isinstance(policy, ActorCriticPolicy):
+        layout = ActorLayout.from_policy(policy)
+        if layout != model.policy.layout:
+            raise ValueError(f"The policy's actor {layout} differs from the model's {model.policy.layout}")
+        n_pairs = model.policy.n_state_action_pairs
+        probe = model.history.sample_observations(n_pairs) if n_pairs else None
+        if n_pairs and probe is None:  # empty history: probe at the given observations
+            probe = _take(observations, np.resize(np.arange(_batch_size(observations)), n_pairs))
+        return snapshot_policy(policy, layout, probe, np.zeros(model.policy.code_dim))
+    if isinstance(policy, np.ndarray):
+        representation = model.policy.representation
+        if representation.uses_state_action_pairs or representation.uses_codes:
+            raise ValueError(
+                f"A bare parameter vector is not enough for representation={model.policy.representation_name!r}: "
+                "pass the policy, a saved model or a history record"
+            )
+        return {
+            "params": policy.astype(np.float32),
+            "states": np.zeros((0, state_dim(model.observation_space)), np.float32),
+            "actions": np.zeros((0, get_action_dim(model.action_space)), np.float32),
+            "codes": np.zeros(0, np.float32),
+        }
+    if isinstance(policy, dict):
+        return {key: np.asarray(value, dtype=np.float32) for key, value in policy.items()}
+    raise TypeError(
+        f"Expected an SB3 policy or model, a saved model path, a record dict or a parameter vector, got {type(policy)}"
+    )
+
+
+def predict_policy_values(model, policy: PolicyLike, observations: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
+    """V(s, chi_policy) of a PPOPeVFA model at ``observations`` (a batch), without running the policy.
+
+    :param policy: An SB3 actor-critic policy or model with the model's actor architecture, the path of a saved
+        model, a record of the history (``history.policy_data([i])`` entries for one policy) or, for parameter-based
+        representations, a flat parameter vector
+    :return: Values, shape ``(batch,)``
+    """
+    record = _record(model, policy, observations)
+    if record["params"].ndim == 1:
+        record = {key: value[None] for key, value in record.items()}
+    training = model.policy.training
+    model.policy.set_training_mode(False)
+    with th.no_grad():
+        embedding = model.policy.embed(PolicyData.from_numpy(record, model.device))
+        values = model.policy.predict_policy_values(obs_as_tensor(observations, model.device), embedding)
+    model.policy.set_training_mode(training)
+    return values.flatten().cpu().numpy()

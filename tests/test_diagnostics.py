@@ -1,0 +1,150 @@
+import pathlib
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from conftest import FAST, read_progress
+from stable_baselines3.common.logger import configure
+
+from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.diagnostics import (
+    LocalGeneralizationCallback,
+    plot_embedding_maps,
+    plot_local_generalization,
+    policy_embeddings,
+    predict_policy_values,
+    run_global_generalization,
+)
+from sb3_pevfa.diagnostics.global_generalization import POLICY_LAYOUT, collect_returns, policy_actions
+from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS, monte_carlo_returns, read_scalars
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def test_point_walker_dynamics_and_reward():
+    env = gym.make("PointWalker-v0")
+    obs, _ = env.reset(seed=0)
+    x, y = obs[:2]
+    assert np.allclose(obs[2:], [np.sin(np.arctan2(y, x)), np.cos(np.arctan2(y, x)), np.cos(x), np.cos(y)], atol=1e-6)
+    obs2, reward, terminated, truncated, _ = env.step(np.array([2.0, -0.5]))  # clipped to [-1, 1]
+    assert np.allclose(obs2[:2], [x + 1.0, y - 0.5], atol=1e-6)
+    assert reward == pytest.approx((((x + 1) ** 2 - (y - 0.5) ** 2) - (x**2 - y**2)) / 10, rel=1e-5)
+    steps = 1
+    while not truncated:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps += 1
+    assert steps == 10 and not terminated
+
+
+def test_vectorised_rollouts_match_the_env():
+    rng = np.random.default_rng(0)
+    params = rng.normal(size=(3, POLICY_LAYOUT.n_params)).astype(np.float32)
+    states, returns = collect_returns(params, n_trajectories=2, horizon=10, rng=np.random.default_rng(1))
+    env = gym.make("PointWalker-v0").unwrapped
+    for p in range(3):
+        env.position = states[p, 0, 0, :2].astype(np.float64)
+        env.steps, total = 0, 0.0
+        obs = states[p, 0, 0]
+        for step in range(10):
+            assert np.allclose(obs, states[p, 0, step], atol=1e-5)
+            obs, reward, *_ = env.step(policy_actions(params[p : p + 1], obs[None, None])[0, 0])
+            total += reward
+        assert total == pytest.approx(returns[p, 0, 0], rel=1e-4, abs=1e-4)
+
+
+def test_global_generalization_learns_something():
+    results = run_global_generalization(n_policies=300, n_trajectories=10, epochs=4, seed=0)
+    assert [r.representation for r in results] == ["rpr", "opr"]
+    variance = np.var(np.concatenate([r.true_test_values for r in results[:1]]))
+    for result in results:
+        assert np.isfinite(result.test_mse) and result.train_mse < variance
+        assert len(result.predicted_test_values) == 60
+
+
+def test_monte_carlo_returns_and_complete_episodes():
+    rewards = np.array([[1.0], [1.0], [1.0], [1.0]])
+    starts = np.array([[1.0], [0.0], [1.0], [0.0]])  # episodes: steps 0-1, then 2-3 (cut by the rollout end)
+    returns, complete = monte_carlo_returns(rewards, starts, last_dones=np.array([False]), gamma=0.5)
+    np.testing.assert_allclose(returns.flatten(), [1.5, 1.0, 1.5, 1.0])
+    assert complete.flatten().tolist() == [True, True, False, False]
+    _, complete = monte_carlo_returns(rewards, starts, last_dones=np.array([True]), gamma=0.5)
+    assert complete.all()
+
+
+def test_local_generalization_callback_and_plot(tmp_path):
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(320, callback=LocalGeneralizationCallback())
+    rows = [row for row in read_progress(tmp_path) if row.get("pevfa/local_gen/pevfa_before")]
+    assert len(rows) == 5  # every iteration, the last one at the end of training
+    for row in rows:
+        errors = {key: float(row[f"pevfa/local_gen/{key}"]) for key in ERROR_KEYS}
+        assert all(np.isfinite(v) and v >= 0 for v in errors.values())
+    # the side critic trains: its error moves after the update
+    assert any(float(r["pevfa/local_gen/vfa_after"]) != float(r["pevfa/local_gen/vfa_before"]) for r in rows)
+    assert [int(r["pevfa/local_gen/timesteps"]) for r in rows] == [64, 128, 192, 256, 320]
+    png = plot_local_generalization(tmp_path, tmp_path / "plot.png")
+    assert png.stat().st_size > 10_000
+    with pytest.raises(TypeError, match="PPOPeVFA"):
+        from stable_baselines3 import PPO
+
+        PPO("MlpPolicy", "CartPole-v1", n_steps=64).learn(64, callback=LocalGeneralizationCallback())
+
+
+def test_read_scalars_from_tensorboard(tmp_path):
+    pytest.importorskip("tensorboard")
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", tensorboard_log=str(tmp_path), **FAST)
+    model.learn(256, callback=LocalGeneralizationCallback())
+    scalars = read_scalars(next(tmp_path.iterdir()))
+    assert np.isfinite(scalars["pevfa/local_gen/pevfa_before"]).sum() >= 3
+    plot_local_generalization(next(tmp_path.iterdir()), tmp_path / "tb.png")
+
+
+def test_embedding_maps(tmp_path):
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(640)
+    ids, embeddings = policy_embeddings(model)
+    assert embeddings.shape == (len(ids), 64) and len(ids) == model.history.n_policies
+    assert any("episode_return" in model.history.policy_info(int(i)) for i in ids)
+    assert plot_embedding_maps(model, tmp_path / "maps.png").stat().st_size > 10_000
+    with pytest.raises(ValueError, match="none"):
+        policy_embeddings(PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST).learn(192))
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr", "rpr"])
+def test_zero_shot_values(tmp_path, representation):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **FAST).learn(192)
+    obs = np.stack([model.observation_space.sample() for _ in range(5)])
+    model.policy.set_training_mode(False)
+    with th.no_grad():
+        expected = model.policy.predict_values(th.as_tensor(obs)).flatten().numpy()
+    latest = {k: v[0] for k, v in model.history.policy_data([model.history.latest_policy_id]).items()}
+    # the model's own (final, recorded) policy: from its record, exactly the critic's values
+    np.testing.assert_allclose(predict_policy_values(model, latest, obs), expected, rtol=1e-5)
+    other = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **{**FAST, "seed": 3})
+    other.save(tmp_path / "other")
+    from_path = predict_policy_values(model, tmp_path / "other.zip", obs)
+    assert from_path.shape == (5,) and not np.allclose(from_path, expected)
+    if representation != "spr":
+        np.testing.assert_allclose(predict_policy_values(model, model, obs), expected, rtol=1e-5)
+        np.testing.assert_allclose(predict_policy_values(model, latest["params"], obs), expected, rtol=1e-5)
+    else:
+        with pytest.raises(ValueError, match="bare parameter vector"):
+            predict_policy_values(model, latest["params"], obs)
+    with pytest.raises(ValueError, match="differs"):
+        predict_policy_values(model, PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])), obs)
+
+
+@pytest.mark.parametrize("example", ["local_generalization", "global_generalization", "embedding_maps", "zero_shot_values"])
+def test_examples_run(tmp_path, example):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / f"{example}.py"), "--tiny", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert list(tmp_path.glob("*.png"))
+    assert "figure" in result.stdout or "mapped" in result.stdout
