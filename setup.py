@@ -53,7 +53,13 @@ setup(
             "psycopg[binary]",
             # rl-zoo3's record_video of classic-control tasks renders with pygame
             "gymnasium[classic-control]",
+            "matplotlib",
+            "scikit-learn",
+            "scipy",
+            "tensorboard",
         ],
+        # diagnostics: plots, t-SNE / PCA, rank correlations, TensorBoard logs
+        "diagnostics": ["matplotlib", "scikit-learn", "scipy", "tensorboard"],
         "docs": ["matplotlib", "scikit-learn"],
     },
     license="MIT",
