@@ -6,6 +6,7 @@ import numpy as np
 import torch as th
 
 from sb3_pevfa.common.policy_data import PolicyData
+from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 
 
 def policy_embeddings(model, batch_size: int = 256) -> tuple[np.ndarray, np.ndarray]:
@@ -47,10 +48,7 @@ def plot_embedding_maps(
 ) -> pathlib.Path:
     """One row per method, coloured by the policy's return (``episode_return`` recorded in the history) and by its
     iteration (order of recording)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ids, embeddings = policy_embeddings(model)
     returns = np.array([model.history.policy_info(int(pid)).get("episode_return", np.nan) for pid in ids], dtype=float)
@@ -63,9 +61,4 @@ def plot_embedding_maps(
             points = ax.scatter(coordinates[known, 0], coordinates[known, 1], s=8, c=values[known], cmap="viridis")
             fig.colorbar(points, ax=ax, label=label)
             ax.set(title=f"{method.upper()} of {len(ids)} policies, by {label}", xticks=[], yticks=[])
-    fig.tight_layout()
-    png = pathlib.Path(png)
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
-    return png
+    return save_figure(fig, png)

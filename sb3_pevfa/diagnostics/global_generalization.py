@@ -13,6 +13,7 @@ from torch.nn import functional as F
 from sb3_pevfa.common.critics import PeVFAValueHead
 from sb3_pevfa.common.policy_data import ActorLayout, PolicyData
 from sb3_pevfa.common.representations import OriginPolicyRepresentation, RawPolicyRepresentation
+from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 from sb3_pevfa.envs.point_walker import point_walker_observation, point_walker_utility
 
 #: Synthetic policies: 6 -> 2 -> 2 -> 2 actions, tanh everywhere (2 hidden layers of 2 units), deterministic.
@@ -155,10 +156,7 @@ def run_global_generalization(
 
 def plot_global_generalization(results: list[GlobalGeneralizationResult], png: str) -> None:
     """Predicted vs true values of the unseen policies, one panel per representation (paper Fig. 3a)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, len(results), figsize=(4.5 * len(results), 4), squeeze=False)
     for ax, result in zip(axes[0], results):
@@ -171,6 +169,4 @@ def plot_global_generalization(results: list[GlobalGeneralizationResult], png: s
             xlabel="true value of an unseen policy",
             ylabel="PeVFA prediction",
         )
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, png)

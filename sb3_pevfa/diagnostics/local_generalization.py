@@ -13,6 +13,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_pevfa.common.policy_data import PolicyData, flatten_observations, state_dim
+from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 
 #: The four error curves, in ``pevfa/local_gen/<name>``.
 ERROR_KEYS = ("pevfa_before", "pevfa_after", "vfa_before", "vfa_after")
@@ -173,10 +174,7 @@ def read_scalars(log: str | pathlib.Path) -> dict[str, np.ndarray]:
 
 def plot_local_generalization(log: str | pathlib.Path, png: str | pathlib.Path, title: str = "") -> pathlib.Path:
     """The paper's Fig. 3b / 8 from a run's logs: the four error curves (log scale) and the return curve."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     scalars = read_scalars(log)
     if "pevfa/local_gen/pevfa_before" not in scalars:
@@ -202,9 +200,4 @@ def plot_local_generalization(log: str | pathlib.Path, png: str | pathlib.Path, 
         )
         twin.set_ylabel("average episode return", color="tab:green")
     ax.legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    png = pathlib.Path(png)
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
-    return png
+    return save_figure(fig, png)
