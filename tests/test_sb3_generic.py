@@ -208,3 +208,49 @@ def test_policy_save_load_and_other_number_of_envs(tmp_path):
     more_envs.load_history(tmp_path / "history")
     more_envs.learn(128, reset_num_timesteps=False)
     assert more_envs.history.n_samples == 64 + 128
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr", "random", "none"])
+def test_get_set_parameters_as_sb3_checks_them(tmp_path, representation):
+    """SB3's save/load contract: every state-dict entry can be randomised and set, errors on bad input, round trip."""
+    objectives = ("cl", "aux") if representation in ("opr", "spr") else ()
+    model = PPOPeVFA(
+        "MlpPolicy",
+        IdentityEnvBox(-10, 10),
+        representation=representation,
+        representation_objectives=objectives,
+        policy_kwargs=dict(net_arch=[16]),
+        **{**FAST, "n_steps": 64},
+    ).learn(128)
+    original = {
+        name: {k: v.clone() for k, v in sd.items()} if "optim" not in name else sd
+        for name, sd in model.get_parameters().items()
+    }
+    with pytest.raises(ValueError):
+        model.set_parameters({**original, "not_an_object": {}}, exact_match=True)
+    with pytest.raises(ValueError):
+        model.set_parameters(dict(list(original.items())[:-1]), exact_match=True)
+    with pytest.raises(RuntimeError):
+        model.set_parameters({name: dict(list(sd.items())[:-1]) for name, sd in original.items()}, exact_match=True)
+    randomised = {
+        name: sd if "optim" in name else {k: th.rand_like(v) for k, v in list(sd.items())[:-1]}
+        for name, sd in original.items()
+    }
+    model.set_parameters(randomised, exact_match=False)
+    new = model.get_parameters()
+    for name, sd in original.items():
+        if "optim" in name:
+            continue
+        *changed, last = sd
+        assert th.equal(sd[last], new[name][last])
+        assert all(not th.allclose(sd[k], new[name][k]) for k in changed), name
+    obs = np.stack([model.observation_space.sample() for _ in range(5)])
+    actions = model.predict(obs, deterministic=True)[0]
+    model.save(tmp_path / "model")
+    for device in ("auto", "cpu"):
+        loaded = PPOPeVFA.load(tmp_path / "model", env=make_vec_env(lambda: IdentityEnvBox(-10, 10)), device=device)
+        np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], actions, rtol=1e-4)
+        loaded.learn(64)
+    # SB3's load with custom objects and system info
+    custom = PPOPeVFA.load(tmp_path / "model", custom_objects=dict(learning_rate=2e-5, dummy=1.0), print_system_info=True)
+    assert custom.learning_rate == 2e-5 and not hasattr(custom, "dummy")

@@ -139,11 +139,16 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             head.init_weights(self.init_weights)
         self.value_net = _BoundValueNet(head, self.behaviour_embedding, lambda: self._critic_frozen)
         self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
-        self.register_buffer("behaviour_params", th.zeros(self.layout.n_params))
-        self.register_buffer("behaviour_states", th.zeros(self.n_state_action_pairs, state_dim(self.observation_space)))
-        self.register_buffer("behaviour_actions", th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)))
-        self.register_buffer("behaviour_codes", th.zeros(self.code_dim))
-        self.register_buffer("has_behaviour", th.zeros((), dtype=th.bool))
+        # The behaviour policy's record travels with the policy's state dict (empty fields stay out of it).
+        behaviour = {
+            "behaviour_params": th.zeros(self.layout.n_params),
+            "behaviour_states": th.zeros(self.n_state_action_pairs, state_dim(self.observation_space)),
+            "behaviour_actions": th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)),
+            "behaviour_codes": th.zeros(self.code_dim),
+            "has_behaviour": th.zeros(()),  # 1.0 once a record was set (a float: SB3's tests randomise state dicts)
+        }
+        for name, tensor in behaviour.items():
+            self.register_buffer(name, tensor, persistent=tensor.numel() > 0)
         self.objectives = nn.ModuleDict(
             {
                 name: make_objective(
@@ -202,7 +207,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             self.behaviour_states.copy_(data.states[0])
             self.behaviour_actions.copy_(data.actions[0])
             self.behaviour_codes.copy_(data.codes[0])
-            self.has_behaviour.fill_(True)
+            self.has_behaviour.fill_(1.0)
         self.clear_embedding_cache()
 
     def behaviour_policy_data(self) -> PolicyData:
