@@ -23,6 +23,8 @@ from stable_baselines3.common.envs import (
     SimpleMultiObsEnv,
 )
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.preprocessing import get_flattened_obs_dim
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import get_device
 
 from sb3_pevfa import PPOPeVFA
@@ -254,3 +256,32 @@ def test_get_set_parameters_as_sb3_checks_them(tmp_path, representation):
     # SB3's load with custom objects and system info
     custom = PPOPeVFA.load(tmp_path / "model", custom_objects=dict(learning_rate=2e-5, dummy=1.0), print_system_info=True)
     assert custom.learning_rate == 2e-5 and not hasattr(custom, "dummy")
+
+
+class _BatchNormDropoutExtractor(BaseFeaturesExtractor):
+    """Flatten, batch norm and dropout: train/eval mode matters (SB3's test_train_eval_mode style)."""
+
+    def __init__(self, observation_space):
+        super().__init__(observation_space, get_flattened_obs_dim(observation_space))
+        self.layers = th.nn.Sequential(th.nn.Flatten(), th.nn.BatchNorm1d(self.features_dim), th.nn.Dropout(0.5))
+
+    def forward(self, observations):
+        return self.layers(observations)
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+def test_batch_norm_and_dropout_follow_train_eval_mode(env_id):
+    policy_kwargs = dict(net_arch=[16, 16], features_extractor_class=_BatchNormDropoutExtractor)
+    model = PPOPeVFA("MlpPolicy", env_id, policy_kwargs=policy_kwargs, **FAST)
+    batch_norm = model.policy.features_extractor.layers[1]
+    before = batch_norm.running_mean.clone()
+    # rollouts (and the policy records taken at their start) run in evaluation mode
+    _, callback = model._setup_learn(128)
+    for _ in range(2):
+        model.collect_rollouts(model.get_env(), callback, model.rollout_buffer, n_rollout_steps=model.n_steps)
+    assert th.equal(batch_norm.running_mean, before)
+    obs = model.get_env().reset()
+    first = model.predict(obs, deterministic=True)[0]
+    assert all(np.array_equal(model.predict(obs, deterministic=True)[0], first) for _ in range(5))
+    model.learn(128)
+    assert not th.allclose(batch_norm.running_mean, before)
