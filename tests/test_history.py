@@ -43,6 +43,9 @@ def test_policy_bound_evicts_its_samples():
     assert set(ids.tolist()) == {2, 3, 4} and history.n_samples == 300
     assert history.policy_info(4) == {"n_updates": 4, "num_timesteps": 400}
     np.testing.assert_array_equal(history.policy_data([4, 2])["params"][:, 0], [4, 2])
+    # only the fields a representation reads are stacked
+    params_only = history.policy_data([4, 2], fields=("params",))
+    assert params_only["params"].shape == (2, 5) and params_only["states"].shape == (2, 0, 3)
 
 
 def test_sampling_excludes_current_policy_and_is_seeded():

@@ -206,10 +206,20 @@ class PolicyHistory:
         ids = np.fromiter(self._policies, dtype=np.int64, count=len(self._policies))
         return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
 
-    def policy_data(self, policy_ids: np.ndarray | list[int]) -> dict[str, np.ndarray]:
-        """Stacked raw data of the given policies: ``{field: (P, ...)}``."""
+    def policy_data(
+        self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = POLICY_FIELDS
+    ) -> dict[str, np.ndarray]:
+        """Stacked raw data of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
+        (size 0 along their first data axis), which saves copying what a representation does not read."""
         records = [self._policies[int(pid)] for pid in policy_ids]
-        return {name: np.stack([record[name] for record in records]) for name in POLICY_FIELDS}
+        data = {}
+        for name in POLICY_FIELDS:
+            if name in fields:
+                data[name] = np.stack([record[name] for record in records])
+            else:
+                shape = records[0][name].shape
+                data[name] = np.zeros((len(records), 0, *shape[1:]), np.float32)
+        return data
 
     # ------------------------------------------------------------------ samples
     @property

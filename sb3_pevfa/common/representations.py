@@ -25,6 +25,13 @@ class PolicyRepresentation(nn.Module):
         super().__init__()
         self.embedding_dim = embedding_dim
 
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """The fields of :class:`PolicyData` this representation reads."""
+        if self.uses_state_action_pairs:
+            return ("states", "actions")
+        return ("codes",) if self.uses_codes else ("params",)
+
     def forward(self, data: PolicyData) -> th.Tensor:
         raise NotImplementedError
 

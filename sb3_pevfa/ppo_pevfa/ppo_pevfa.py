@@ -304,7 +304,8 @@ class PPOPeVFA(PPO):
                 break
             observations, targets, policy_ids = batch
             unique_ids, inverse = np.unique(policy_ids, return_inverse=True)
-            data = PolicyData.from_numpy(self.history.policy_data(unique_ids), self.device)
+            fields = self.policy.representation.fields
+            data = PolicyData.from_numpy(self.history.policy_data(unique_ids, fields), self.device)
             embeddings = self.policy.embed(data)[th.as_tensor(inverse, device=self.device)]
             values = self.policy.predict_policy_values(obs_as_tensor(observations, self.device), embeddings)
             loss = F.mse_loss(values.flatten(), th.as_tensor(targets, device=self.device))
