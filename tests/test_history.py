@@ -119,3 +119,10 @@ def test_bad_records_and_arguments():
     for kwargs in ({"buffer_size": 0}, {"max_policies": -1}):
         with pytest.raises(ValueError, match="positive"):
             PolicyHistory(OBS, ACT, 5, **kwargs)
+
+
+def test_float64_observations_are_stored_as_float32():
+    history = PolicyHistory(gym.spaces.Box(-1, 1, (3,), np.float64), ACT, 5, n_state_action_pairs=4)
+    pid = history.add_policy(_record(0))
+    history.add_samples(np.ones((10, 3), np.float64), np.zeros(10), pid)
+    assert history.samples()[0].dtype == np.float32

@@ -125,8 +125,9 @@ class PolicyHistory:
     # ------------------------------------------------------------------ construction
     def _obs_specs(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
         def spec(space: spaces.Space) -> tuple[tuple[int, ...], np.dtype]:
-            dtype = space.dtype if isinstance(space, spaces.Box) else np.dtype(np.float32)
-            return get_obs_shape(space), np.dtype(dtype)
+            # integer Box spaces (images) keep their dtype; everything else is float32, as in SB3's rollout buffers
+            integer_box = isinstance(space, spaces.Box) and np.issubdtype(space.dtype, np.integer)
+            return get_obs_shape(space), np.dtype(space.dtype if integer_box else np.float32)
 
         if self._obs_keys is None:
             return {"obs": spec(self.observation_space)}
