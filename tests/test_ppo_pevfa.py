@@ -148,10 +148,11 @@ def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
     assert resumed.history.policy_ids == reference.history.policy_ids
     np.testing.assert_allclose(resumed.history.samples()[0], reference.history.samples()[0], atol=1e-3)
     error = np.abs(_final_state(resumed) - _final_state(reference)).max()
-    # resuming without the history gives a run an order of magnitude further away
+    # resuming without the history gives a run further away
     no_history = PPOPeVFA.load(tmp_path / "model", env=make_env())
     no_history.learn(192, reset_num_timesteps=False)
-    assert error < 1e-3 and error < np.abs(_final_state(no_history) - _final_state(reference)).max() / 10
+    # the tolerance separates the two: resumed runs fall inside it, a run without the history does not
+    assert error < 1e-3 < np.abs(_final_state(no_history) - _final_state(reference)).max()
 
 
 def test_value_loss_trains_encoder_and_not_actor():
