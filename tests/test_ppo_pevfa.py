@@ -338,3 +338,26 @@ def test_user_workflow_from_the_readme(tmp_path):
     model.load_history(tmp_path / "hopper_history")
     model.learn(64, reset_num_timesteps=False)
     assert model.num_timesteps == 192 and model.history.n_policies == 4
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+def test_without_representation_and_history_it_is_sb3_ppo(env_id):
+    """No representation, no historical updates, SB3's critic shape: PPOPeVFA trains exactly as SB3's PPO."""
+    common = dict(n_steps=64, batch_size=32, n_epochs=3, seed=0, policy_kwargs=dict(net_arch=dict(pi=[32, 32], vf=[32, 32])))
+    ppo = PPO("MlpPolicy", env_id, **common)
+    pevfa_kwargs = dict(representation="none", history_train_freq=0, n_state_action_pairs=0)
+    pevfa_kwargs["policy_kwargs"] = {**common["policy_kwargs"], "critic_head_arch": []}
+    pevfa = PPOPeVFA("MlpPolicy", env_id, **{**common, **pevfa_kwargs})
+
+    def renamed(key: str) -> str:
+        return key.replace("value_net.", "value_net.head.output.", 1) if key.startswith("value_net.") else key
+
+    weights = {renamed(k): v for k, v in ppo.policy.state_dict().items()}
+    missing, unexpected = pevfa.policy.load_state_dict(weights, strict=False)
+    assert not unexpected and all(k.startswith("behaviour") or k == "has_behaviour" for k in missing)
+    for model in (ppo, pevfa):
+        th.manual_seed(1)
+        np.random.seed(1)
+        model.learn(192)
+    for name, value in ppo.policy.state_dict().items():
+        np.testing.assert_allclose(pevfa.policy.state_dict()[renamed(name)].numpy(), value.numpy(), atol=1e-5)
