@@ -19,7 +19,8 @@ class PolicyHistoryCallback(BaseCallback):
     recorded too.
 
     :class:`~sb3_pevfa.PPOPeVFA` installs one itself; attach one to a plain PPO/A2C run to keep a policy
-    history for later analysis (``callback.history.save(path)``).
+    history for later analysis (``callback.history.save(path)``). A2C updates every ``n_steps`` (5 by default), so
+    it records many more policies than PPO: lower ``n_state_action_pairs`` or ``max_policies`` to bound the memory.
 
     :param history: Where to record; by default a new one is built from the model's spaces
     :param n_state_action_pairs: Pairs per policy when building the history (0 with image observations)
