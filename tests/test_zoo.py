@@ -227,3 +227,22 @@ def test_history_file_keeps_the_zoo_name(tmp_path):
     )
     history.save(tmp_path / "replay_buffer.pkl")
     assert (tmp_path / "replay_buffer.pkl").exists() and not (tmp_path / "replay_buffer.pkl.npz").exists()
+
+
+@pytest.mark.parametrize("space", ["full", "small"])
+def test_sampler_and_converter_agree(space):
+    """What a trial trains with (sampler) is what --trial-id rebuilds from its stored parameters (converter)."""
+    from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE, convert_ppo_pevfa_params, sample_ppo_pevfa_params
+
+    SEARCH_SPACE["name"] = space
+    try:
+        study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+        for _ in range(20):
+            trial = study.ask()
+            sampled = sample_ppo_pevfa_params(trial, 1, 1, {})
+            assert convert_ppo_pevfa_params(trial.params) == sampled
+            model = PPOPeVFA("MlpPolicy", "CartPole-v1", **{k: v for k, v in sampled.items() if k != "n_steps"}, n_steps=64)
+            assert model.policy.representation_name == sampled["representation"]
+            study.tell(trial, 0.0)
+    finally:
+        SEARCH_SPACE["name"] = "full"
