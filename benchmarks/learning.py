@@ -106,14 +106,15 @@ def plot(out: pathlib.Path, png: pathlib.Path) -> None:
         result = json.loads(path.read_text())
         results.setdefault(result["env"], {}).setdefault(result["variant"], []).append(result)
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    colors = {variant: f"C{i}" for i, variant in enumerate(sorted({v for variants in results.values() for v in variants}))}
     for ax, (env_id, variants) in zip(axes[0], sorted(results.items())):
         for variant, runs in sorted(variants.items()):
             n = min(len(r["curve"]) for r in runs)
             steps = np.array([c["timesteps"] for c in runs[0]["curve"][:n]])
             returns = np.array([[c["mean_return"] for c in r["curve"][:n]] for r in runs])
             mean, std = returns.mean(axis=0), returns.std(axis=0)
-            ax.plot(steps, mean, label=f"{variant} ({len(runs)} seeds)")
-            ax.fill_between(steps, mean - std, mean + std, alpha=0.2)
+            ax.plot(steps, mean, color=colors[variant], label=f"{variant} ({len(runs)} seeds)")
+            ax.fill_between(steps, mean - std, mean + std, color=colors[variant], alpha=0.2)
         ax.set(title=env_id, xlabel="environment steps", ylabel="average return (10 episodes)")
         ax.legend()
     fig.tight_layout()
