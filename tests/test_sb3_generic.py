@@ -285,3 +285,38 @@ def test_batch_norm_and_dropout_follow_train_eval_mode(env_id):
     assert all(np.array_equal(model.predict(obs, deterministic=True)[0], first) for _ in range(5))
     model.learn(128)
     assert not th.allclose(batch_norm.running_mean, before)
+
+
+class _MixedDictEnv(gym.Env):
+    """Dict observations with discrete, box and binary keys; MultiDiscrete actions."""
+
+    observation_space = gym.spaces.Dict(
+        {"d": gym.spaces.Discrete(3), "b": gym.spaces.Box(-1, 1, (2,)), "m": gym.spaces.MultiBinary(2)}
+    )
+    action_space = gym.spaces.MultiDiscrete([2, 3])
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.observation_space.seed(seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, bool(self.np_random.random() < 0.1), {}
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_mixed_dict_observations_with_objectives(tmp_path, representation):
+    model = PPOPeVFA(
+        "MultiInputPolicy",
+        _MixedDictEnv(),
+        representation=representation,
+        representation_objectives=("cl", "aux"),
+        objective_kwargs={"cl": {"learning_starts": 0}, "aux": {"learning_starts": 0}},
+        **FAST,
+    )
+    model.learn(192)
+    # states are flattened after preprocessing: one-hot(3) + box(2) + binary(2)
+    assert model.history.policy_data([0])["states"].shape == (1, 200, 7)
+    obs = {key: np.stack([space.sample() for _ in range(3)]) for key, space in model.observation_space.spaces.items()}
+    loaded = _saved_and_loaded(model, tmp_path / "model")
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
