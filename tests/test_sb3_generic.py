@@ -162,8 +162,9 @@ def test_gsde_and_separate_features_extractor(share_features_extractor):
 class _ObservationSpaceEnv(gym.Env):
     """Random observations of a given space (SB3's test_spaces style)."""
 
-    def __init__(self, observation_space):
-        self.observation_space, self.action_space = observation_space, gym.spaces.Discrete(2)
+    def __init__(self, observation_space, action_space=None):
+        self.observation_space = observation_space
+        self.action_space = gym.spaces.Discrete(2) if action_space is None else action_space
 
     def reset(self, seed=None, options=None):
         super().reset(seed=seed)
@@ -287,28 +288,15 @@ def test_batch_norm_and_dropout_follow_train_eval_mode(env_id):
     assert not th.allclose(batch_norm.running_mean, before)
 
 
-class _MixedDictEnv(gym.Env):
-    """Dict observations with discrete, box and binary keys; MultiDiscrete actions."""
-
-    observation_space = gym.spaces.Dict(
-        {"d": gym.spaces.Discrete(3), "b": gym.spaces.Box(-1, 1, (2,)), "m": gym.spaces.MultiBinary(2)}
-    )
-    action_space = gym.spaces.MultiDiscrete([2, 3])
-
-    def reset(self, seed=None, options=None):
-        super().reset(seed=seed)
-        self.observation_space.seed(seed)
-        return self.observation_space.sample(), {}
-
-    def step(self, action):
-        return self.observation_space.sample(), 0.0, False, bool(self.np_random.random() < 0.1), {}
-
-
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_mixed_dict_observations_with_objectives(tmp_path, representation):
     model = PPOPeVFA(
         "MultiInputPolicy",
-        _MixedDictEnv(),
+        # Dict observations with discrete, box and binary keys; MultiDiscrete actions
+        _ObservationSpaceEnv(
+            gym.spaces.Dict({"d": gym.spaces.Discrete(3), "b": gym.spaces.Box(-1, 1, (2,)), "m": gym.spaces.MultiBinary(2)}),
+            gym.spaces.MultiDiscrete([2, 3]),
+        ),
         representation=representation,
         representation_objectives=("cl", "aux"),
         objective_kwargs={"cl": {"learning_starts": 0}, "aux": {"learning_starts": 0}},

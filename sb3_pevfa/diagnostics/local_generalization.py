@@ -79,7 +79,6 @@ class LocalGeneralizationCallback(BaseCallback):
                 self.optimizer.step()
 
     def _on_rollout_end(self) -> None:
-        self._flush()
         buffer = self.model.rollout_buffer
         returns, complete = monte_carlo_returns(
             buffer.rewards, buffer.episode_starts, self.model._last_episode_starts, self.model.gamma
