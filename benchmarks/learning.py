@@ -1,121 +1,193 @@
-"""Learning comparison: SB3 PPO vs PPOPeVFA variants at identical PPO hyperparameters.
+"""Learning benchmark: SB3 PPO vs PPOPeVFA variants through rl-zoo3, at identical PPO hyperparameters.
 
-Every (variant, seed) run is a separate process (one torch thread each, ``--workers`` at a time) that writes its own
-JSON file (evaluation curve, wall time), so an interrupted sweep loses at most the runs in flight. Runs whose file
-already exists are skipped. Summarise with ``python benchmarks/learning.py --report``.
+Every (env, variant, seed) is one rl-zoo3 training (``python -m sb3_pevfa.train --algo ppo|ppo_pevfa``) reading the
+same config file (``benchmarks/hyperparams/learning.yml``: SB3's PPO defaults); PeVFA variants add only their PeVFA
+options (``--hyperparams``). rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes``
+deterministic episodes); its ``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses
+at most the runs in flight, and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread
+each.
 
-Example (the numbers in docs/benchmarks.md)::
-
-    python benchmarks/learning.py --env Hopper-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4 \\
-        --timesteps 150000 --out docs/results/learning
+    # this machine's budget (docs/benchmarks.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
+    python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4
+    # the paper's protocol (Table 1): six tasks, 2M steps (Ant 4M), 10 seeds, all variants
+    python benchmarks/learning.py --paper
+    # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
+    python benchmarks/learning.py --report --plot docs/results/learning.png
 """
 
 import argparse
 import json
-import multiprocessing as mp
+import os
 import pathlib
+import shutil
+import subprocess
+import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-#: PeVFA options of each variant; "ppo" is SB3's PPO. PPO hyperparameters are SB3's defaults for all.
+CONF = pathlib.Path(__file__).parent / "hyperparams" / "learning.yml"
+
+#: PeVFA options of each variant (rl-zoo3 ``--hyperparams``); "ppo" is SB3's PPO. "pevfa-opr" is PPOPeVFA's defaults.
 VARIANTS: dict[str, dict | None] = {
     "ppo": None,
     "pevfa-none": dict(representation="none"),
     "pevfa-random": dict(representation="random"),
-    "pevfa-opr": dict(representation="opr"),
+    "pevfa-opr": {},
     "pevfa-spr": dict(representation="spr"),
-    "pevfa-opr-critic-first": dict(representation="opr", update_order="critic_first"),
-    "pevfa-opr-cl": dict(representation="opr", representation_objectives=("cl",)),
+    "pevfa-opr-critic-first": dict(update_order="critic_first"),
+    "pevfa-opr-cl": dict(representation_objectives=("cl",)),
     "pevfa-spr-aux": dict(representation="spr", representation_objectives=("aux",)),
     "pevfa-opr-paper": dict(
-        representation="opr",
-        update_order="critic_first",
-        value_target_lambda=1.0,
-        learning_rate=1e-4,
-        critic_learning_rate=1e-3,
+        update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
     ),
 }
 
+#: The paper's Table 1 protocol, in today's task versions: task -> steps (10 seeds, every variant).
+PAPER_TASKS = {
+    "HalfCheetah-v5": 2_000_000,
+    "Hopper-v5": 2_000_000,
+    "Walker2d-v5": 2_000_000,
+    "Ant-v5": 4_000_000,
+    "InvertedDoublePendulum-v5": 2_000_000,
+    "LunarLanderContinuous-v3": 2_000_000,  # needs gymnasium[box2d]
+}
+PAPER_VARIANTS = ["ppo", "pevfa-random", "pevfa-opr", "pevfa-opr-cl", "pevfa-spr", "pevfa-spr-aux"]
 
-def run(variant: str, env_id: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int, out: pathlib.Path) -> None:
-    import torch as th
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.evaluation import evaluate_policy
-    from stable_baselines3.common.logger import configure
 
-    from sb3_pevfa import PPOPeVFA
+def run_name(env_id: str, variant: str, seed: int) -> str:
+    return f"{env_id}_{variant}_seed{seed}"
 
-    th.set_num_threads(1)
-    env = make_vec_env(env_id, n_envs=1, seed=seed)
-    eval_env = make_vec_env(env_id, n_envs=1, seed=seed + 10_000)
+
+def zoo_command(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace, folder: pathlib.Path) -> list:
     options = VARIANTS[variant]
-    model = PPO("MlpPolicy", env, seed=seed) if options is None else PPOPeVFA("MlpPolicy", env, seed=seed, **options)
-    # SB3's train/* and PeVFA's pevfa/* logs of every run, for diagnostics
-    model.set_logger(configure(str(out / "logs" / f"{env_id}_{variant}_seed{seed}"), ["csv"]))
-    curve, start = [], time.perf_counter()
-    for _ in range(timesteps // eval_freq):
-        model.learn(eval_freq, reset_num_timesteps=False)
-        mean, std = evaluate_policy(model, eval_env, n_eval_episodes=eval_episodes, deterministic=True)
-        curve.append({"timesteps": model.num_timesteps, "mean_return": float(mean), "std_return": float(std)})
+    command = [
+        sys.executable, "-m", "sb3_pevfa.train",
+        "--algo", "ppo" if options is None else "ppo_pevfa",
+        "--env", env_id, "--seed", str(seed), "-n", str(timesteps), "-conf", str(args.conf),
+        "--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", "1",
+        "--num-threads", "1", "-f", str(folder), "--log-interval", "-1",
+    ]  # fmt: skip
+    if options:
+        command += ["--hyperparams", *(f"{key}:{value!r}" for key, value in options.items())]
+    return command
+
+
+def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace) -> str:
+    """One rl-zoo3 training; its evaluation curve becomes ``<out>/<env>_<variant>_seed<seed>.json``."""
+    name = run_name(env_id, variant, seed)
+    folder = args.out / "runs" / name
+    shutil.rmtree(folder, ignore_errors=True)  # a half-finished earlier attempt
+    command = zoo_command(env_id, variant, seed, timesteps, args, folder)
+    start = time.perf_counter()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    process = subprocess.run(command, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if process.returncode != 0:
+        (args.out / f"{name}.err").write_text(process.stdout[-5000:] + process.stderr[-20000:])
+        return f"{name}: FAILED (see {name}.err)"
+    evaluations = np.load(next(folder.rglob("evaluations.npz")))
+    returns = evaluations["results"]
     result = {
         "variant": variant,
-        "options": options,
+        "options": VARIANTS[variant],
         "env": env_id,
         "seed": seed,
         "timesteps": timesteps,
-        "wall_time_s": time.perf_counter() - start,
-        "curve": curve,
+        "wall_time_s": wall,
+        "command": " ".join(os.path.relpath(c) if c in (str(args.conf), str(folder)) else c for c in command[1:]),
+        "curve": [
+            {"timesteps": int(t), "mean_return": float(r.mean()), "std_return": float(r.std())}
+            for t, r in zip(evaluations["timesteps"], returns)
+        ],
+        "episode_returns": returns.tolist(),
     }
-    (out / f"{env_id}_{variant}_seed{seed}.json").write_text(json.dumps(result, indent=1))
-    print(f"{env_id} {variant} seed {seed}: max {max(c['mean_return'] for c in curve):.0f}", flush=True)
+    (args.out / f"{name}.json").write_text(json.dumps(result, indent=1))
+    return f"{name}: max {returns.mean(axis=1).max():.0f} ({wall:.0f} s)"
 
 
-def report(out: pathlib.Path) -> str:
-    """Markdown table: max / final average return, mean and std over seeds, and the wall time per run."""
-    results: dict[tuple[str, str], list[dict]] = {}
+# ---------------------------------------------------------------------------------------------------- report
+def load_results(out: pathlib.Path) -> dict[str, dict[str, list[dict]]]:
+    """env -> variant -> runs (sorted by seed)."""
+    results: dict[str, dict[str, list[dict]]] = {}
     for path in sorted(out.glob("*.json")):
         result = json.loads(path.read_text())
-        results.setdefault((result["env"], result["variant"]), []).append(result)
-    lines = [
-        "| env | variant | seeds | max avg return | final avg return | wall time / run (s) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for (env_id, variant), runs in sorted(results.items()):
-        best = np.array([max(c["mean_return"] for c in r["curve"]) for r in runs])
-        final = np.array([r["curve"][-1]["mean_return"] for r in runs])
-        wall = np.mean([r["wall_time_s"] for r in runs])
-        seeds = ",".join(str(r["seed"]) for r in sorted(runs, key=lambda r: r["seed"]))
-        lines.append(
-            f"| {env_id} | {variant} | {seeds} | {best.mean():.0f} ± {best.std():.0f} | "
-            f"{final.mean():.0f} ± {final.std():.0f} | {wall:.0f} |"
-        )
+        results.setdefault(result["env"], {}).setdefault(result["variant"], []).append(result)
+    for variants in results.values():
+        for runs in variants.values():
+            runs.sort(key=lambda r: r["seed"])
+    return results
+
+
+def scores(runs: list[dict]) -> dict[str, np.ndarray]:
+    """Per-seed scores: max average return (the paper's), final average return, area under the curve (mean)."""
+    curves = [np.array([c["mean_return"] for c in r["curve"]]) for r in runs]
+    return {
+        "max": np.array([c.max() for c in curves]),
+        "final": np.array([c[-1] for c in curves]),
+        "auc": np.array([c.mean() for c in curves]),
+    }
+
+
+def bootstrap_ci(values: np.ndarray, reps: int = 5000) -> tuple[float, float]:
+    """Percentile bootstrap 95 % CI of the mean over seeds: rliable's stratified bootstrap for a single task.
+
+    (scipy's, since rliable 1.2 does not run with today's arch/pandas: arch 7 fails to import under pandas 3 and
+    arch 8 rejects rliable's ``random_state`` argument.)"""
+    from scipy.stats import bootstrap
+
+    if len(values) < 2:
+        return float("nan"), float("nan")
+    result = bootstrap((values,), np.mean, n_resamples=reps, method="percentile", rng=np.random.default_rng(0))
+    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def report(out: pathlib.Path, baseline: str = "ppo") -> str:
+    """Table-1 style markdown per task: max average return +- half a std over seeds (as the paper), its rliable
+    95 % CI, final return, area under the curve, the change of the mean vs PPO, seeds and wall time."""
+    lines = []
+    for env_id, variants in sorted(load_results(out).items()):
+        base = scores(variants[baseline])["max"].mean() if baseline in variants else None
+        lines += [
+            f"**{env_id}** ({variants[next(iter(variants))][0]['timesteps']:,} steps)",
+            "",
+            "| variant | seeds | max avg return (± ½ std) | 95 % CI (bootstrap) | vs PPO | final avg return | "
+            "area under curve | max per seed | wall time / run |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for variant, runs in sorted(variants.items(), key=lambda item: (item[0] != baseline, item[0])):
+            s = scores(runs)
+            low, high = bootstrap_ci(s["max"])
+            change = "" if base is None or variant == baseline else f"{s['max'].mean() / base - 1:+.0%}"
+            lines.append(
+                f"| {variant} | {len(runs)} | {s['max'].mean():.0f} ± {s['max'].std() / 2:.0f} | [{low:.0f}, {high:.0f}] | "
+                f"{change} | {s['final'].mean():.0f} ± {s['final'].std() / 2:.0f} | {s['auc'].mean():.0f} | "
+                f"{', '.join(f'{v:.0f}' for v in s['max'])} | {np.mean([r['wall_time_s'] for r in runs]):.0f} s |"
+            )
+        lines.append("")
     return "\n".join(lines)
 
 
 def plot(out: pathlib.Path, png: pathlib.Path) -> None:
-    """Learning curves per env: mean over seeds with a band of one std, every variant."""
+    """Learning curves per task: mean over seeds with a band of one std, every variant in its fixed colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    results: dict[str, dict[str, list[dict]]] = {}
-    for path in sorted(out.glob("*.json")):
-        result = json.loads(path.read_text())
-        results.setdefault(result["env"], {}).setdefault(result["variant"], []).append(result)
+    results = load_results(out)
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
-    colors = {variant: f"C{i}" for i, variant in enumerate(sorted({v for variants in results.values() for v in variants}))}
+    colors = {variant: f"C{i}" for i, variant in enumerate(VARIANTS)}
     for ax, (env_id, variants) in zip(axes[0], sorted(results.items())):
         for variant, runs in sorted(variants.items()):
             n = min(len(r["curve"]) for r in runs)
             steps = np.array([c["timesteps"] for c in runs[0]["curve"][:n]])
             returns = np.array([[c["mean_return"] for c in r["curve"][:n]] for r in runs])
             mean, std = returns.mean(axis=0), returns.std(axis=0)
-            ax.plot(steps, mean, color=colors[variant], label=f"{variant} ({len(runs)} seeds)")
-            ax.fill_between(steps, mean - std, mean + std, color=colors[variant], alpha=0.2)
-        ax.set(title=env_id, xlabel="environment steps", ylabel="average return (10 episodes)")
+            ax.plot(steps, mean, color=colors.get(variant), label=f"{variant} ({len(runs)} seeds)")
+            ax.fill_between(steps, mean - std, mean + std, color=colors.get(variant), alpha=0.2)
+        ax.set(title=env_id, xlabel="environment steps", ylabel="average return (deterministic)")
         ax.legend()
     fig.tight_layout()
     fig.savefig(png, dpi=100)
@@ -123,27 +195,35 @@ def plot(out: pathlib.Path, png: pathlib.Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="Hopper-v5")
-    parser.add_argument("--variants", nargs="+", default=["ppo", "pevfa-opr"], choices=sorted(VARIANTS))
+    parser.add_argument("--env", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
+    parser.add_argument("--variants", nargs="+", default=["ppo", "pevfa-opr"], choices=list(VARIANTS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
-    parser.add_argument("--timesteps", type=int, default=150_000)
-    parser.add_argument("--eval-freq", type=int, default=10_000)
+    parser.add_argument("--timesteps", type=int, default=300_000)
+    parser.add_argument("--eval-freq", type=int, default=20_000)
     parser.add_argument("--eval-episodes", type=int, default=10)
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="runs at a time (default: the cores)")
+    parser.add_argument("--conf", type=pathlib.Path, default=CONF, help="rl-zoo3 hyperparameters shared by all variants")
+    parser.add_argument("--paper", action="store_true", help="the paper's protocol: its six tasks, 2M steps, 10 seeds")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
     parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
     args = parser.parse_args()
+    if args.paper:
+        tasks, args.variants, args.seeds = dict(PAPER_TASKS), PAPER_VARIANTS, list(range(10))
+    else:
+        tasks = {env_id: args.timesteps for env_id in args.env}
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.report:
         jobs = [
-            (variant, args.env, seed, args.timesteps, args.eval_freq, args.eval_episodes, args.out)
+            (env_id, variant, seed, steps, args)
             for seed in args.seeds
+            for env_id, steps in tasks.items()
             for variant in args.variants
-            if not (args.out / f"{args.env}_{variant}_seed{seed}.json").exists()
+            if not (args.out / f"{run_name(env_id, variant, seed)}.json").exists()
         ]
-        with mp.get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
-            pool.starmap(run, jobs, chunksize=1)
+        with ThreadPoolExecutor(args.workers) as pool:  # threads only wait on the training processes
+            for message in pool.map(lambda job: run(*job), jobs):
+                print(message, flush=True)
     print(report(args.out))
     if args.plot is not None:
         plot(args.out, args.plot)
