@@ -11,6 +11,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PPOPeVFA
 from sb3_pevfa.common.buffers import PeVFARolloutBuffer
+from sb3_pevfa.common.lean_ppo import flat_observations
 from sb3_pevfa.common.policy_data import ActorLayout
 from sb3_pevfa.ppo_pevfa.policies import PeVFAActorCriticPolicy
 
@@ -205,7 +206,8 @@ def test_critic_first_recomputes_advantages_with_updated_critic():
     assert not np.allclose(model.rollout_buffer.values, values_before)
     model.policy.set_training_mode(False)
     with th.no_grad():
-        expected = model.policy.predict_values(model._rollout_observations()).numpy().reshape(values_before.shape)
+        observations = flat_observations(model.rollout_buffer, model.device, env_major=False)
+        expected = model.policy.predict_values(observations).numpy().reshape(values_before.shape)
     np.testing.assert_allclose(model.rollout_buffer.values, expected, rtol=1e-6)
 
 

@@ -71,6 +71,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
     :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
         (see :mod:`sb3_pevfa.common.objectives`)
+
+    Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``.
     """
 
     def __init__(
@@ -93,6 +95,10 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
     ):
+        if kwargs.get("optimizer_kwargs") is None and kwargs.get("optimizer_class", th.optim.Adam) is th.optim.Adam:
+            # SB3's Adam settings (eps=1e-5) with the fused kernel: one call per step instead of a Python loop over
+            # the parameter tensors (the encoder adds many). Pass optimizer_kwargs=dict(eps=1e-5) for SB3's own.
+            kwargs["optimizer_kwargs"] = dict(eps=1e-5, fused=True)
         if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
             net_arch = dict(pi=[64, 64], vf=[64])
         if not isinstance(n_state_action_pairs, (int, np.integer)) or n_state_action_pairs < 0:

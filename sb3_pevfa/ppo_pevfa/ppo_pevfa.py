@@ -13,10 +13,12 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, ConvertCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
+from sb3_pevfa.common import lean_ppo
 from sb3_pevfa.common.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, _ValueTargetLambdaMixin
 from sb3_pevfa.common.callbacks import PolicyHistoryCallback
 from sb3_pevfa.common.history import PolicyHistory
@@ -79,6 +81,9 @@ class PPOPeVFA(PPO):
     :param history_batch_size: Samples per historical critic update (paper: 64)
     :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them
     :param history_learning_starts: Environment steps before historical updates start (paper: 5k)
+    :param fast_path: Critic values batched after each rollout (the actor alone acts), a lean PPO update loop and
+        foreach gradient clipping (:mod:`sb3_pevfa.common.lean_ppo`): SB3's math and random draws, equal up to float
+        round-off; False runs SB3's own ``collect_rollouts`` and ``PPO.train``
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -125,6 +130,7 @@ class PPOPeVFA(PPO):
         history_batch_size: int = 64,
         history_train_freq: int = 10,
         history_learning_starts: int = 5_000,
+        fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
         seed: int | None = None,
@@ -191,6 +197,7 @@ class PPOPeVFA(PPO):
         self.history_batch_size = history_batch_size
         self.history_train_freq = history_train_freq
         self.history_learning_starts = history_learning_starts
+        self.fast_path = fast_path
         self._history_credit = 0
         self._objective_credit: dict[str, int] = {}
         self._validate_pevfa_arguments(n_state_action_pairs)
@@ -258,6 +265,7 @@ class PPOPeVFA(PPO):
             representation=self.representation,
         )
         self._history_callback = PolicyHistoryCallback(self.history)
+        self._critic_params = list(self.policy.critic_parameters())
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -265,7 +273,7 @@ class PPOPeVFA(PPO):
         return state_dicts, variables
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "history", "_history_callback"]
+        return [*super()._excluded_save_params(), "history", "_history_callback", "_critic_params"]
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         callbacks: list[BaseCallback] = [self._history_callback]
@@ -284,10 +292,28 @@ class PPOPeVFA(PPO):
                 group["lr"] = critic_lr
 
     # ------------------------------------------------------------------ training
+    def collect_rollouts(
+        self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer, n_rollout_steps: int
+    ) -> bool:
+        if self.fast_path:
+            return lean_ppo.collect_rollouts(self, env, callback, rollout_buffer, n_rollout_steps)
+        return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+
+    def _ppo_update(self) -> None:
+        """The PPO actor-critic update on the rollout (SB3's, or its lean equivalent)."""
+        if self.fast_path:
+            self.policy.set_training_mode(True)
+            lean_ppo.train_ppo(self)
+        else:
+            super().train()
+
     def _critic_step(self, loss: th.Tensor) -> None:
         self.policy.optimizer.zero_grad()
         loss.backward()
-        th.nn.utils.clip_grad_norm_(list(self.policy.critic_parameters()), self.max_grad_norm)
+        if self.fast_path:
+            lean_ppo.clip_grad_norm(self._critic_params, self.max_grad_norm)
+        else:
+            th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm)
         self.policy.optimizer.step()
 
     def _train_on_history(self) -> list[float]:
@@ -338,17 +364,6 @@ class PPOPeVFA(PPO):
                 metrics[f"{name}_updates"].append(1.0)
         return metrics
 
-    def _rollout_observations(self) -> PyTorchObs:
-        """All observations of the rollout buffer as one flat batch (without touching the buffer's layout)."""
-        buffer = self.rollout_buffer
-        n = buffer.buffer_size * buffer.n_envs
-        if isinstance(buffer.observations, dict):
-            return {
-                key: th.as_tensor(obs.reshape(n, *obs.shape[2:]), device=self.device)
-                for key, obs in buffer.observations.items()
-            }
-        return th.as_tensor(buffer.observations.reshape(n, *buffer.observations.shape[2:]), device=self.device)
-
     def _minibatches(self, n: int) -> Generator[np.ndarray, None, None]:
         indices = np.random.permutation(n)
         for start in range(0, n, self.batch_size):
@@ -356,7 +371,7 @@ class PPOPeVFA(PPO):
 
     def _train_critic_on_rollout(self) -> list[float]:
         """Critic epochs on the current rollout with chi of its behaviour policy (``critic_first`` order)."""
-        observations = self._rollout_observations()
+        observations = lean_ppo.flat_observations(self.rollout_buffer, self.device, env_major=False)
         returns = th.as_tensor(self.rollout_buffer.returns.reshape(-1), device=self.device)
         losses = []
         for _ in range(self.n_epochs):
@@ -373,8 +388,8 @@ class PPOPeVFA(PPO):
         """GAE with the updated critic (``critic_first`` order)."""
         buffer = self.rollout_buffer
         self.policy.set_training_mode(False)
+        values = lean_ppo.predict_values(self.policy, lean_ppo.flat_observations(buffer, self.device, env_major=False))
         with th.no_grad():
-            values = self.policy.predict_values(self._rollout_observations())
             last_values = self.policy.predict_values(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
         buffer.values = values.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs).astype(np.float32)
         buffer.compute_returns_and_advantage(last_values, self._last_episode_starts)  # type: ignore[arg-type]
@@ -392,9 +407,9 @@ class PPOPeVFA(PPO):
             self.logger.record("pevfa/critic_value_loss", float(np.mean(critic_losses)))
             self._recompute_advantages()
             with self.policy.critic_frozen():
-                super().train()
+                self._ppo_update()
         else:
-            super().train()
+            self._ppo_update()
         self._record_pevfa_logs(history_losses)
 
     def _record_pevfa_logs(self, history_losses: list[float]) -> None:
