@@ -64,8 +64,11 @@ def main() -> None:
     parser.add_argument("--study-name", default="ppo_pevfa")
     parser.add_argument("--search-space", choices=["full", "small"], default="full")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tiny", action="store_true", help="2 trials of 1k steps, the small space (a smoke test)")
     args = parser.parse_args()
     th.set_num_threads(1)
+    if args.tiny:
+        args.n_trials, args.timesteps, args.n_evaluations, args.eval_episodes, args.search_space = 2, 1024, 2, 2, "small"
     SEARCH_SPACE["name"] = args.search_space
 
     study = optuna.create_study(

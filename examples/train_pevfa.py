@@ -21,8 +21,11 @@ def main() -> None:
     parser.add_argument("--representation", default="opr", choices=REPRESENTATIONS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/example"))
+    parser.add_argument("--tiny", action="store_true", help="1k steps (a smoke test)")
     args = parser.parse_args()
     th.set_num_threads(1)
+    if args.tiny:
+        args.timesteps = 1024
 
     env = make_vec_env(args.env, n_envs=1, seed=args.seed)
     model = PPOPeVFA("MlpPolicy", env, representation=args.representation, seed=args.seed, verbose=1)

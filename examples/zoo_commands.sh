@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# rl-zoo3 with PPOPeVFA: train PPO and PPOPeVFA on one config, watch, plot their evaluations, run a small search.
+#
+#   bash examples/zoo_commands.sh                   # CartPole-v1, 100k steps, 20 trials
+#   TINY=1 bash examples/zoo_commands.sh            # seconds (CI)
+#   ENV=Hopper-v5 LOGS=runs/zoo_hopper bash examples/zoo_commands.sh
+set -euo pipefail
+ENV=${ENV:-CartPole-v1}
+LOGS=${LOGS:-runs/zoo}
+if [ "${TINY:-0}" = 1 ]; then N=2048; TRIALS=2; EVAL=1024; else N=100000; TRIALS=20; EVAL=10000; fi
+export MPLBACKEND=Agg
+
+# 1. PPO and PPOPeVFA, same seed, rl-zoo3's EvalCallback every $EVAL steps (hyperparams/ppo_pevfa.yml holds the
+#    same PPO settings as rl-zoo3's ppo.yml, plus the PeVFA ones)
+for ALGO in ppo ppo_pevfa; do
+  python -m sb3_pevfa.train --algo $ALGO --env "$ENV" -f "$LOGS" -n $N --seed 0 \
+      --eval-freq $EVAL --eval-episodes 5 --num-threads 1
+done
+
+# 2. watch the trained PPOPeVFA agent (headless here; drop --no-render to see it)
+python -m sb3_pevfa.enjoy --algo ppo_pevfa --env "$ENV" -f "$LOGS" -n 500 --no-render
+
+# 3. rl-zoo3's plots and table of the evaluations (PPO vs PPOPeVFA)
+python -m rl_zoo3.plots.all_plots -a ppo ppo_pevfa -e "$ENV" -f "$LOGS" -o "$LOGS/results" --no-display
+python -m rl_zoo3.plots.plot_train -a ppo_pevfa -e "$ENV" -f "$LOGS/"
+
+# 4. a hyperparameter search with rl-zoo3's Optuna integration (PPO's space plus PeVFA's), journal storage; the
+#    report (best parameters, all trials) is written under $LOGS/ppo_pevfa/
+python -m sb3_pevfa.train --algo ppo_pevfa --env "$ENV" -f "$LOGS" -n $N -optimize --n-trials $TRIALS --n-jobs 1 \
+    --sampler tpe --pruner median --n-evaluations 2 --eval-episodes 3 \
+    --storage "$LOGS/study.log" --study-name "pevfa-$ENV" --num-threads 1
+echo "zoo example done: logs and plots under $LOGS"
