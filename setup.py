@@ -57,10 +57,14 @@ setup(
             "scikit-learn",
             "scipy",
             "tensorboard",
+            # the documentation is built (warnings as errors) by the test suite
+            "sphinx",
+            "myst-parser",
+            "sphinx-rtd-theme",
         ],
         # diagnostics: plots, t-SNE / PCA, rank correlations, TensorBoard logs
         "diagnostics": ["matplotlib", "scikit-learn", "scipy", "tensorboard"],
-        "docs": ["matplotlib", "scikit-learn"],
+        "docs": ["sphinx", "myst-parser", "sphinx-rtd-theme", "matplotlib", "scikit-learn"],
     },
     license="MIT",
     classifiers=[

@@ -44,6 +44,7 @@ class PointWalkerEnv(gym.Env):
         return point_walker_observation(self.position), {}
 
     def step(self, action):
+        """Move by ``action`` (clipped to [-1, 1]^2); reward: the change of the utility, divided by 10."""
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
         utility = point_walker_utility(self.position)
         self.position = self.position + action
