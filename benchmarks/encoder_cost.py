@@ -1,0 +1,71 @@
+"""Cost of each policy representation: parameters, and the time of one forward + backward pass over P policies.
+
+A historical critic update encodes the distinct policies of its 64-sample batch (about 47 once the history holds
+its default 200k samples of ~98 policies on a 2048-step task); the on-policy update encodes one (the behaviour
+policy) per minibatch. One torch thread, the actor of SB3's default MlpPolicy on the task.
+
+    python benchmarks/encoder_cost.py --env Hopper-v5 --out docs/results/encoder_cost_hopper.json
+"""
+
+import argparse
+import json
+import pathlib
+import time
+
+import numpy as np
+import torch as th
+
+from sb3_pevfa import REPRESENTATIONS, PPOPeVFA
+from sb3_pevfa.common.policy_data import PolicyData
+
+
+def seconds_per_call(fn, repeats: int) -> float:
+    for _ in range(10):
+        fn()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - start) / repeats
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--policies", type=int, nargs="+", default=[1, 10, 50])
+    parser.add_argument("--repeats", type=int, default=300)
+    parser.add_argument("--out", type=pathlib.Path, default=None)
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    rows = []
+    for name in REPRESENTATIONS:
+        model = PPOPeVFA("MlpPolicy", args.env, representation=name, seed=0)
+        policy = model.policy
+        encoder = policy.representation
+        row = {"representation": name, "parameters": sum(p.numel() for p in encoder.parameters()), "ms": {}}
+        for n in args.policies:
+            pairs = n * policy.n_state_action_pairs
+            actions = np.stack([model.action_space.sample() for _ in range(pairs)]).astype(np.float32)
+            data = PolicyData(
+                th.randn(n, policy.layout.n_params),
+                th.randn(n, policy.n_state_action_pairs, policy.behaviour_states.shape[1]),
+                th.as_tensor(actions).reshape(n, policy.n_state_action_pairs, -1),
+                th.rand(n, policy.code_dim),
+            )
+            trainable = any(p.requires_grad for p in encoder.parameters())
+
+            def call(data=data, trainable=trainable, encoder=encoder):
+                out = encoder(data)
+                if trainable:
+                    out.sum().backward()
+
+            row["ms"][n] = 1e3 * seconds_per_call(call, args.repeats)
+        rows.append(row)
+        times = ", ".join(f"P={n}: {ms:.2f} ms" for n, ms in row["ms"].items())
+        print(f"{name:>7}: {row['parameters']:>6} parameters, {times}")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"env": args.env, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

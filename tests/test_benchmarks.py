@@ -1,0 +1,52 @@
+"""The benchmark scripts run end to end at a tiny budget and write what the docs cite (the long runs are not tests)."""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).parents[1]
+
+
+def _run(*args: str, cwd: pathlib.Path) -> str:
+    result = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=600, cwd=cwd)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    return result.stdout
+
+
+def test_learning_benchmark_through_the_zoo(tmp_path):
+    out = tmp_path / "learning"
+    stdout = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "pevfa-opr",
+                  "--seeds", "0", "1", "--timesteps", "2048", "--eval-freq", "1024", "--eval-episodes", "2",
+                  "--out", str(out), "--plot", str(tmp_path / "curves.png"), cwd=ROOT)  # fmt: skip
+    runs = {path.stem: json.loads(path.read_text()) for path in out.glob("*.json")}
+    assert set(runs) == {f"InvertedPendulum-v5_{v}_seed{s}" for v in ("ppo", "pevfa-opr") for s in (0, 1)}
+    ppo, pevfa = runs["InvertedPendulum-v5_ppo_seed0"], runs["InvertedPendulum-v5_pevfa-opr_seed0"]
+    assert [c["timesteps"] for c in ppo["curve"]] == [1024, 2048]
+    assert len(ppo["episode_returns"][0]) == 2
+    # one config file for both algorithms; only the algorithm differs
+    assert "--algo ppo " in ppo["command"] and "--algo ppo_pevfa " in pevfa["command"]
+    shared = [command.split(" --env ")[1].split(" -f ")[0] for command in (ppo["command"], pevfa["command"])]
+    assert shared[0].replace("_ppo_", "_") == shared[1].replace("_pevfa-opr_", "_")
+    assert "| ppo | 2 |" in stdout and "| pevfa-opr | 2 |" in stdout and "95 % CI" in stdout
+    assert (tmp_path / "curves.png").stat().st_size > 0
+    # finished runs are skipped on a second call
+    again = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0",
+                 "--timesteps", "2048", "--out", str(out), cwd=ROOT)  # fmt: skip
+    assert "max" not in again.split("**")[0]  # no run message before the report
+
+
+def test_speed_encoder_and_memory_benchmarks(tmp_path):
+    _run(str(ROOT / "benchmarks" / "speed.py"), "--env", "CartPole-v1", "--steps", "256", "--warmup", "512", "--repeats", "2",
+         "--out", str(tmp_path), "--cache", str(tmp_path / "cache"), cwd=ROOT)  # fmt: skip
+    speed = json.loads((tmp_path / "CartPole-v1_warmup512.json").read_text())
+    assert len(speed["ppo_steps_per_s"]) == len(speed["pevfa_steps_per_s"]) == 2 and speed["ratio_median"] > 0
+    assert set(speed["pevfa_shares"]) >= {"rollout", "on-policy update", "history update"}
+    _run(str(ROOT / "benchmarks" / "encoder_cost.py"), "--env", "CartPole-v1", "--policies", "1", "3", "--repeats", "2",
+         "--out", str(tmp_path / "encoder.json"), cwd=ROOT)  # fmt: skip
+    rows = json.loads((tmp_path / "encoder.json").read_text())["rows"]
+    assert {row["representation"] for row in rows} == {"opr", "spr", "rpr", "random", "stats", "none"}
+    _run(str(ROOT / "benchmarks" / "history_memory.py"), "--env", "CartPole-v1", "--steps", "4096", "8192",
+         "--out", str(tmp_path / "memory.json"), cwd=ROOT)  # fmt: skip
+    memory = json.loads((tmp_path / "memory.json").read_text())["rows"]
+    assert memory[0]["mb"] < memory[1]["mb"] and memory[1]["policies"] == 4
