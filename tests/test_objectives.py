@@ -162,3 +162,13 @@ def test_save_load_with_both_objectives(tmp_path):
     for (name, a), b in zip(model.policy.state_dict().items(), loaded.policy.state_dict().values()):
         assert th.equal(a, b), name
     assert "objectives.cl.key_encoder.projection.weight" in loaded.policy.state_dict()
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_objectives_with_gsde(representation):
+    """The docs' "Can I use?" table: both objectives train beside a gSDE actor (its log-std is a matrix)."""
+    objective_kwargs = {name: dict(learning_starts=0, batch_policies=4, train_freq=16) for name in ("cl", "aux")}
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", use_sde=True, representation=representation,
+                     representation_objectives=("cl", "aux"), objective_kwargs=objective_kwargs, **FAST)  # fmt: skip
+    model.learn(256)
+    assert model.policy.cl_optimizer.state and model.policy.aux_optimizer.state  # both took steps
