@@ -27,7 +27,8 @@ setup(
     install_requires=[
         "stable_baselines3>=2.4.0,<3.0",
         # The CPU wheel 2.13.0 satisfies this range: install it first on CPU-only machines.
-        "torch>=2.3,<3.0",
+        # >= 2.4: fused Adam on CPU (PeVFA policies' default optimizer settings).
+        "torch>=2.4,<3.0",
         "gymnasium>=1.0",
         "numpy>=1.24",
         # learn(progress_bar=True)

@@ -193,19 +193,17 @@ def train_ppo(model, clip_params: list[th.nn.Parameter] | None = None) -> None:
     clip_range = model.clip_range(model._current_progress_remaining)
     clip_range_vf = None if model.clip_range_vf is None else model.clip_range_vf(model._current_progress_remaining)
     params = list(policy.parameters()) if clip_params is None else clip_params
-    n = buffer.buffer_size * buffer.n_envs
-    device = model.device
+    n, device = buffer.buffer_size * buffer.n_envs, model.device
 
-    def flat(array: np.ndarray, dtype=th.float32) -> th.Tensor:
-        return th.as_tensor(RolloutBuffer.swap_and_flatten(array), device=device).to(dtype).reshape(n, -1).squeeze(-1)
+    def flat(array: np.ndarray) -> th.Tensor:  # SB3's training order (env-major), as RolloutBuffer.get
+        return th.as_tensor(RolloutBuffer.swap_and_flatten(array), device=device)
 
     observations = flat_observations(buffer, device, env_major=True)
-    discrete = isinstance(model.action_space, spaces.Discrete)
-    actions = flat(buffer.actions, th.long if discrete else th.float32)
-    if not discrete and actions.dim() == 1:  # keep (n, action_dim) for one-dimensional actions
-        actions = actions.unsqueeze(-1)
-    old_values, old_log_prob = flat(buffer.values), flat(buffer.log_probs)
-    all_advantages, returns = flat(buffer.advantages), flat(buffer.returns)
+    actions = flat(buffer.actions).float()  # (n, action_dim), as RolloutBuffer._get_samples casts them
+    if isinstance(model.action_space, spaces.Discrete):
+        actions = actions.long().flatten()
+    old_values, old_log_prob = flat(buffer.values).flatten(), flat(buffer.log_probs).flatten()
+    all_advantages, returns = flat(buffer.advantages).flatten(), flat(buffer.returns).flatten()
 
     entropy_losses, pg_losses, value_losses, clip_fractions = [], [], [], []
     continue_training = True
