@@ -27,7 +27,7 @@ from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import get_device
 
-from sb3_pevfa import PPOPeVFA
+from sb3_pevfa import REPRESENTATIONS, PPOPeVFA
 from sb3_pevfa.ppo_pevfa import MlpPolicy
 
 SPACE_ENVS = {
@@ -44,7 +44,7 @@ def _saved_and_loaded(model, path):
 
 
 @pytest.mark.parametrize("space", sorted(SPACE_ENVS))
-@pytest.mark.parametrize("representation", ["opr", "spr", "stats"])
+@pytest.mark.parametrize("representation", REPRESENTATIONS)  # the docs' "Can I use?" table: every pair
 def test_action_spaces_predict_and_save_load(tmp_path, space, representation):
     env = SPACE_ENVS[space]()
     model = PPOPeVFA("MlpPolicy", env, representation=representation, **FAST).learn(192)
@@ -115,10 +115,11 @@ def test_dict_observations_with_images(tmp_path, representation):
         PPOPeVFA("MultiInputPolicy", env, representation="spr", **FAST)
 
 
+@pytest.mark.parametrize("representation", [r for r in REPRESENTATIONS if r != "spr"])  # spr: no images
 @pytest.mark.parametrize("discrete", [True, False])
-def test_cnn_policy_encodes_the_mlp_head(tmp_path, discrete):
+def test_cnn_policy_encodes_the_mlp_head(tmp_path, discrete, representation):
     env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=1, discrete=discrete)
-    model = PPOPeVFA("CnnPolicy", env, **{**FAST, "n_steps": 32, "batch_size": 16})
+    model = PPOPeVFA("CnnPolicy", env, representation=representation, **{**FAST, "n_steps": 32, "batch_size": 16})
     # default CNN architecture: no MLP between the features and the action layer, which OPR encodes alone
     n_outputs = model.action_space.n if discrete else model.action_space.shape[0]
     assert model.policy.layout.linear_shapes == ((n_outputs, 512),)
