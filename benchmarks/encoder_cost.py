@@ -16,7 +16,7 @@ import numpy as np
 import torch as th
 
 from sb3_pevfa import REPRESENTATIONS, PPOPeVFA
-from sb3_pevfa.common.policy_data import PolicyData
+from sb3_pevfa.pevfa.records import PolicyRecord
 
 
 def seconds_per_call(fn, repeats: int) -> float:
@@ -45,7 +45,7 @@ def main() -> None:
         for n in args.policies:
             pairs = n * policy.n_state_action_pairs
             actions = np.stack([model.action_space.sample() for _ in range(pairs)]).astype(np.float32)
-            data = PolicyData(
+            data = PolicyRecord(
                 th.randn(n, policy.layout.n_params),
                 th.randn(n, policy.n_state_action_pairs, policy.behaviour_states.shape[1]),
                 th.as_tensor(actions).reshape(n, policy.n_state_action_pairs, -1),

@@ -15,7 +15,7 @@ import numpy as np
 import torch as th
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.common.policy_data import snapshot_policy
+from sb3_pevfa.pevfa.records import record_policy
 
 
 def main() -> None:
@@ -36,7 +36,7 @@ def main() -> None:
         while steps < checkpoint:
             probe = history.sample_observations(policy.n_state_action_pairs)
             probe = observations[: policy.n_state_action_pairs] if probe is None else probe
-            policy_id = history.add_policy(snapshot_policy(policy, policy.layout, probe, rng.uniform(-1, 1, policy.code_dim)))
+            policy_id = history.add_record(record_policy(policy, policy.layout, probe, rng.uniform(-1, 1, policy.code_dim)))
             history.add_samples(observations, rng.normal(size=rollout), policy_id)
             steps += rollout
         rows.append(

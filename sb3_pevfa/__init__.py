@@ -1,9 +1,8 @@
 import os
 
 import sb3_pevfa.envs  # noqa: F401  (registers PointWalker-v0)
-from sb3_pevfa.common.callbacks import PolicyHistoryCallback
-from sb3_pevfa.common.history import PolicyHistory
-from sb3_pevfa.common.representations import REPRESENTATIONS
+from sb3_pevfa.a2c_pevfa import A2CPeVFA
+from sb3_pevfa.pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord
 from sb3_pevfa.ppo_pevfa import PPOPeVFA
 
 # Read version from file
@@ -11,4 +10,4 @@ version_file = os.path.join(os.path.dirname(__file__), "version.txt")
 with open(version_file) as file_handler:
     __version__ = file_handler.read().strip()
 
-__all__ = ["REPRESENTATIONS", "PPOPeVFA", "PolicyHistory", "PolicyHistoryCallback"]
+__all__ = ["REPRESENTATIONS", "A2CPeVFA", "PPOPeVFA", "PolicyHistory", "PolicyHistoryCallback", "PolicyRecord"]

@@ -105,7 +105,7 @@ def test_embedding_maps(tmp_path):
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(640)
     ids, embeddings = policy_embeddings(model)
     assert embeddings.shape == (len(ids), 64) and len(ids) == model.history.n_policies
-    assert any("episode_return" in model.history.policy_info(int(i)) for i in ids)
+    assert any("episode_return" in model.history.record_info(int(i)) for i in ids)
     assert plot_embedding_maps(model, tmp_path / "maps.png").stat().st_size > 10_000
     with pytest.raises(ValueError, match="none"):
         policy_embeddings(PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST).learn(192))
@@ -118,7 +118,7 @@ def test_zero_shot_values(tmp_path, representation):
     model.policy.set_training_mode(False)
     with th.no_grad():
         expected = model.policy.predict_values(th.as_tensor(obs)).flatten().numpy()
-    latest = {k: v[0] for k, v in model.history.policy_data([model.history.latest_policy_id]).items()}
+    latest = {k: v[0] for k, v in model.history.records([model.history.latest_policy_id]).items()}
     # the model's own (final, recorded) policy: from its record, exactly the critic's values
     np.testing.assert_allclose(predict_policy_values(model, latest, obs), expected, rtol=1e-5)
     other = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **{**FAST, "seed": 3})

@@ -15,4 +15,4 @@ def test_docs_build_without_warnings(tmp_path):
     assert {"index", "install", "quickstart", "algorithm", "representations", "history", "zoo", "diagnostics",
             "benchmarks", "api", "changelog"} <= pages  # fmt: skip
     api = (tmp_path / "api.html").read_text()
-    assert "sb3_pevfa.PPOPeVFA" in api and "predict_policy_values" in api  # autodoc found the docstrings
+    assert "sb3_pevfa.PPOPeVFA" in api and "predict_values" in api  # autodoc found the docstrings

@@ -2,7 +2,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from sb3_pevfa.common.history import PolicyHistory
+from sb3_pevfa.pevfa.history import PolicyHistory
 
 OBS = gym.spaces.Box(-1, 1, (3,), np.float32)
 ACT = gym.spaces.Discrete(2)
@@ -19,7 +19,7 @@ def _record(value: float, n_params=5, n_pairs=4, code_dim=0):
 
 def _fill(history: PolicyHistory, n_policies: int, samples_per_policy: int) -> None:
     for i in range(n_policies):
-        pid = history.add_policy(_record(i), n_updates=i, num_timesteps=i * samples_per_policy)
+        pid = history.add_record(_record(i), n_updates=i, num_timesteps=i * samples_per_policy)
         obs = np.full((samples_per_policy, 3), i, np.float32)
         history.add_samples(obs, np.full(samples_per_policy, i), pid)
 
@@ -41,10 +41,10 @@ def test_policy_bound_evicts_its_samples():
     assert history.policy_ids == [2, 3, 4]
     _, _, ids = history.samples()
     assert set(ids.tolist()) == {2, 3, 4} and history.n_samples == 300
-    assert history.policy_info(4) == {"n_updates": 4, "num_timesteps": 400}
-    np.testing.assert_array_equal(history.policy_data([4, 2])["params"][:, 0], [4, 2])
+    assert history.record_info(4) == {"n_updates": 4, "num_timesteps": 400}
+    np.testing.assert_array_equal(history.records([4, 2])["params"][:, 0], [4, 2])
     # only the fields a representation reads are stacked
-    params_only = history.policy_data([4, 2], fields=("params",))
+    params_only = history.records([4, 2], fields=("params",))
     assert params_only["params"].shape == (2, 5) and params_only["states"].shape == (2, 0, 3)
 
 
@@ -70,7 +70,7 @@ def test_dict_observations_and_save_load_roundtrip(tmp_path):
     for i in range(3):
         record = _record(i, n_pairs=0, code_dim=2)
         record["states"] = np.zeros((0, 2 + 16), np.float32)
-        pid = history.add_policy(record)
+        pid = history.add_record(record)
         history.add_samples({"a": np.full((2, 30, 2), i), "img": np.full((2, 30, 4, 4, 1), i)}, np.full((2, 30), i), pid)
     assert history.n_samples == 150
     obs, _, _ = history.sample(10)
@@ -89,8 +89,8 @@ def test_dict_observations_and_save_load_roundtrip(tmp_path):
     # the RNG state travels with the file
     assert np.array_equal(history.sample(16)[2], loaded.sample(16)[2])
     # policy ids continue after a load
-    record = {k: v[0] for k, v in history.policy_data([2]).items()}
-    assert history.add_policy(record) == 3 and loaded.add_policy(record) == 3
+    record = {k: v[0] for k, v in history.records([2]).items()}
+    assert history.add_record(record) == 3 and loaded.add_record(record) == 3
 
 
 def test_load_mismatch_is_a_clear_error(tmp_path):
@@ -109,11 +109,11 @@ def test_load_mismatch_is_a_clear_error(tmp_path):
 def test_bad_records_and_arguments():
     history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4)
     with pytest.raises(ValueError, match="params"):
-        history.add_policy(_record(0, n_params=6))
+        history.add_record(_record(0, n_params=6))
     with pytest.raises(KeyError):
         history.add_samples(np.zeros((2, 3)), np.zeros(2), 0)
-    first = history.add_policy(_record(0))
-    history.add_policy(_record(1))
+    first = history.add_record(_record(0))
+    history.add_record(_record(1))
     with pytest.raises(ValueError, match="latest"):
         history.add_samples(np.zeros((2, 3)), np.zeros(2), first)
     for kwargs in ({"buffer_size": 0}, {"max_policies": -1}):
@@ -123,6 +123,6 @@ def test_bad_records_and_arguments():
 
 def test_float64_observations_are_stored_as_float32():
     history = PolicyHistory(gym.spaces.Box(-1, 1, (3,), np.float64), ACT, 5, n_state_action_pairs=4)
-    pid = history.add_policy(_record(0))
+    pid = history.add_record(_record(0))
     history.add_samples(np.ones((10, 3), np.float64), np.zeros(10), pid)
     assert history.samples()[0].dtype == np.float32

@@ -6,14 +6,14 @@ from conftest import FAST, read_progress
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.common.objectives import ActionPredictionObjective, ContrastiveObjective, make_objective
-from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, snapshot_policy
-from sb3_pevfa.common.representations import make_representation
+from sb3_pevfa.pevfa.objectives import ActionPredictionObjective, ContrastiveObjective, make_objective
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy
+from sb3_pevfa.pevfa.representations import make_representation
 
 OBS = gym.spaces.Box(-1, 1, (4,), np.float32)
 
 
-def _synthetic_policies(action_space, n_policies=48, n_pairs=64, seed=0) -> tuple[ActorLayout, PolicyData]:
+def _synthetic_policies(action_space, n_policies=48, n_pairs=64, seed=0) -> tuple[ActorLayout, PolicyRecord]:
     """Randomly initialised small actors with decisive action heads, probed at shared random states."""
     rng = np.random.default_rng(seed)
     probe = rng.uniform(-1, 1, (n_pairs, 4)).astype(np.float32)
@@ -26,8 +26,8 @@ def _synthetic_policies(action_space, n_policies=48, n_pairs=64, seed=0) -> tupl
         with th.no_grad():
             policy.action_net.weight.mul_(10.0)
         layout = layout or ActorLayout.from_policy(policy)
-        records.append(snapshot_policy(policy, layout, probe, np.zeros(0)))
-    return layout, PolicyData.from_numpy({k: np.stack([r[k] for r in records]) for k in records[0]})
+        records.append(record_policy(policy, layout, probe, np.zeros(0)))
+    return layout, PolicyRecord.from_numpy({k: np.stack([r[k] for r in records]) for k in records[0]})
 
 
 def _train(objective, representation, data, steps, batch, seed=0):
@@ -35,7 +35,7 @@ def _train(objective, representation, data, steps, batch, seed=0):
     generator = np.random.default_rng(seed)
     for _ in range(steps):
         index = th.as_tensor(generator.choice(len(data.params), size=batch, replace=False))
-        loss, _ = objective.loss(representation, PolicyData(*(field[index] for field in data)))
+        loss, _ = objective.loss(representation, PolicyRecord(*(field[index] for field in data)))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -48,7 +48,7 @@ def test_contrastive_learning_separates_policies(name):
     layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)))
     representation = make_representation(name, layout, OBS, gym.spaces.Box(-1, 1, (2,)), embedding_dim=32)
     objective = ContrastiveObjective(representation, batch_policies=16)
-    batch = PolicyData(*(field[:16] for field in data))
+    batch = PolicyRecord(*(field[:16] for field in data))
     with th.no_grad():
         _, before = objective.loss(representation, batch)
     _train(objective, representation, data, steps=500, batch=16)

@@ -10,9 +10,9 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PPOPeVFA
-from sb3_pevfa.common.buffers import PeVFARolloutBuffer
-from sb3_pevfa.common.lean_ppo import flat_observations
-from sb3_pevfa.common.policy_data import ActorLayout
+from sb3_pevfa.pevfa.buffers import PeVFARolloutBuffer
+from sb3_pevfa.pevfa.fast_path import flat_observations
+from sb3_pevfa.pevfa.records import ActorLayout
 from sb3_pevfa.ppo_pevfa.policies import PeVFAActorCriticPolicy
 
 
@@ -43,7 +43,7 @@ def test_dict_observations(representation):
     model.learn(192)
     obs, _, _ = model.history.sample(8)
     assert set(obs) == {"angle", "speed"}
-    assert model.history.policy_data([0])["states"].shape == (1, 200, 3)
+    assert model.history.records([0])["states"].shape == (1, 200, 3)
 
 
 @pytest.mark.parametrize("representation", ["opr", "spr"])
@@ -249,7 +249,7 @@ def test_separate_critic_learning_rate(csv_logger):
 
 def test_none_is_a_conventional_critic_through_the_same_path():
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST)
-    head = model.policy.value_net.head
+    head = model.policy.value_net
     assert head.embedding_net is None and model.policy.representation.embedding_dim == 0
     assert len(list(model.policy.representation.parameters())) == 0
     model.learn(128)
@@ -269,10 +269,10 @@ def test_snapshot_callback_on_plain_sb3(tmp_path, algo):
     model.learn(128, callback=callback)
     history = callback.history
     assert history.n_policies == 128 // (32 * model.n_envs) + 1 and history.n_samples == 128
-    assert history.policy_data(history.policy_ids)["states"].shape[1:] == (10, 4)
+    assert history.records(history.policy_ids)["states"].shape[1:] == (10, 4)
     # the final record is the trained policy
     live = ActorLayout.from_policy(model.policy).flatten(model.policy).numpy()
-    np.testing.assert_array_equal(history.policy_data([history.latest_policy_id])["params"][0], live)
+    np.testing.assert_array_equal(history.records([history.latest_policy_id])["params"][0], live)
     history.save(tmp_path / "h")
     PolicyHistory(model.observation_space, model.action_space, history.n_params, 10).load(tmp_path / "h")
 
@@ -352,7 +352,7 @@ def test_without_representation_and_history_it_is_sb3_ppo(env_id):
     pevfa = PPOPeVFA("MlpPolicy", env_id, **{**common, **pevfa_kwargs})
 
     def renamed(key: str) -> str:
-        return key.replace("value_net.", "value_net.head.output.", 1) if key.startswith("value_net.") else key
+        return key.replace("value_net.", "value_net.output.", 1) if key.startswith("value_net.") else key
 
     weights = {renamed(k): v for k, v in ppo.policy.state_dict().items()}
     missing, unexpected = pevfa.policy.load_state_dict(weights, strict=False)

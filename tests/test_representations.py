@@ -4,9 +4,9 @@ import pytest
 import torch as th
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-from sb3_pevfa.common.critics import PeVFAValueHead
-from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, snapshot_policy
-from sb3_pevfa.common.representations import (
+from sb3_pevfa.pevfa.critics import PeVFAValueHead
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy
+from sb3_pevfa.pevfa.representations import (
     REPRESENTATIONS,
     OriginPolicyRepresentation,
     make_representation,
@@ -20,11 +20,11 @@ def _policy(action_space, net_arch=(64, 64), seed=0) -> ActorCriticPolicy:
     return ActorCriticPolicy(BOX_OBS, action_space, lambda _: 1e-3, net_arch=dict(pi=list(net_arch), vf=[8]))
 
 
-def _data(policies, n_pairs=16, code_dim=0) -> PolicyData:
+def _data(policies, n_pairs=16, code_dim=0) -> PolicyRecord:
     layout = ActorLayout.from_policy(policies[0])
     probe = np.random.default_rng(0).uniform(-1, 1, (n_pairs, 3)).astype(np.float32)
-    records = [snapshot_policy(p, layout, probe, np.zeros(code_dim)) for p in policies]
-    return PolicyData.from_numpy({k: np.stack([r[k] for r in records]) for k in records[0]})
+    records = [record_policy(p, layout, probe, np.zeros(code_dim)) for p in policies]
+    return PolicyRecord.from_numpy({k: np.stack([r[k] for r in records]) for k in records[0]})
 
 
 @pytest.mark.parametrize(

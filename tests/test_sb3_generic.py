@@ -305,7 +305,7 @@ def test_mixed_dict_observations_with_objectives(tmp_path, representation):
     )
     model.learn(192)
     # states are flattened after preprocessing: one-hot(3) + box(2) + binary(2)
-    assert model.history.policy_data([0])["states"].shape == (1, 200, 7)
+    assert model.history.records([0])["states"].shape == (1, 200, 7)
     obs = {key: np.stack([space.sample() for _ in range(3)]) for key, space in model.observation_space.spaces.items()}
     loaded = _saved_and_loaded(model, tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.common.history import PolicyHistory
+from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.rl_zoo import ALGO_NAME, HYPERPARAMS_PATH, register
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -97,7 +97,7 @@ def test_zoo_train_enjoy_and_continue_with_history(zoo_run):
     # the continued run kept every policy of the first one and added its own
     assert set(first.history.policy_ids) < set(second.history.policy_ids)
     assert second.history.n_samples == first.history.n_samples + 256
-    assert second.history.policy_info(0)["num_timesteps"] == 0
+    assert second.history.record_info(0)["num_timesteps"] == 0
 
 
 def test_zoo_record_video(zoo_run):

@@ -5,7 +5,7 @@ import pathlib
 import numpy as np
 import torch as th
 
-from sb3_pevfa.common.policy_data import PolicyData
+from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 
 
@@ -23,7 +23,7 @@ def policy_embeddings(model, batch_size: int = 256) -> tuple[np.ndarray, np.ndar
     chunks = []
     with th.no_grad():
         for start in range(0, len(ids), batch_size):
-            data = PolicyData.from_numpy(history.policy_data(ids[start : start + batch_size]), model.device)
+            data = PolicyRecord.from_numpy(history.records(ids[start : start + batch_size]), model.device)
             chunks.append(policy.embed(data).cpu().numpy())
     policy.set_training_mode(training)
     return ids, np.concatenate(chunks)
@@ -51,7 +51,7 @@ def plot_embedding_maps(
     plt = pyplot()
 
     ids, embeddings = policy_embeddings(model)
-    returns = np.array([model.history.policy_info(int(pid)).get("episode_return", np.nan) for pid in ids], dtype=float)
+    returns = np.array([model.history.record_info(int(pid)).get("episode_return", np.nan) for pid in ids], dtype=float)
     fig, axes = plt.subplots(len(methods), 2, figsize=(10, 4.2 * len(methods)), squeeze=False)
     for row, method in zip(axes, methods):
         coordinates = embedding_map(embeddings, method, seed)

@@ -10,9 +10,9 @@ from scipy.stats import spearmanr
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_pevfa.common.critics import PeVFAValueHead
-from sb3_pevfa.common.policy_data import ActorLayout, PolicyData
-from sb3_pevfa.common.representations import OriginPolicyRepresentation, RawPolicyRepresentation
+from sb3_pevfa.pevfa.critics import PeVFAValueHead
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord
+from sb3_pevfa.pevfa.representations import OriginPolicyRepresentation, RawPolicyRepresentation
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 from sb3_pevfa.envs.point_walker import point_walker_observation, point_walker_utility
 
@@ -64,7 +64,7 @@ class _PointWalkerPeVFA(nn.Module):
 
     def forward(self, states: th.Tensor, params: th.Tensor) -> th.Tensor:
         empty = params.new_zeros((len(params), 0))
-        chi = self.representation(PolicyData(params, empty[:, None], empty[:, None], empty))
+        chi = self.representation(PolicyRecord(params, empty[:, None], empty[:, None], empty))
         return self.head(self.state_net(states), chi).flatten()
 
 

@@ -12,7 +12,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_pevfa.common.policy_data import PolicyData, flatten_observations, state_dim
+from sb3_pevfa.pevfa.records import PolicyRecord, flatten_observations, state_dim
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
 
 #: The four error curves, in ``pevfa/local_gen/<name>``.
@@ -124,9 +124,9 @@ class LocalGeneralizationCallback(BaseCallback):
         training = policy.training
         policy.set_training_mode(False)
         with th.no_grad():
-            data = PolicyData.from_numpy(history.policy_data([pending["policy_id"]]), self.model.device)
+            data = PolicyRecord.from_numpy(history.records([pending["policy_id"]]), self.model.device)
             observations = obs_as_tensor(pending["observations"], self.model.device)
-            pending["pevfa_after"] = policy.predict_policy_values(observations, policy.embed(data)).flatten()
+            pending["pevfa_after"] = policy.predict_values(observations, policy.embed(data)).flatten()
         policy.set_training_mode(training)
         for key in ERROR_KEYS:
             self.logger.record(f"pevfa/local_gen/{key}", self._error(pending[key], pending))

@@ -9,7 +9,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import obs_as_tensor
 
-from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, snapshot_policy, state_dim
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy, state_dim
 
 PolicyLike = ActorCriticPolicy | BaseAlgorithm | str | pathlib.Path | dict | np.ndarray
 
@@ -40,7 +40,7 @@ def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
         probe = model.history.sample_observations(n_pairs) if n_pairs else None
         if n_pairs and probe is None:  # empty history: probe at the given observations
             probe = _take(observations, np.resize(np.arange(_batch_size(observations)), n_pairs))
-        return snapshot_policy(policy, layout, probe, np.zeros(model.policy.code_dim))
+        return record_policy(policy, layout, probe, np.zeros(model.policy.code_dim))
     if isinstance(policy, np.ndarray):
         representation = model.policy.representation
         if representation.uses_state_action_pairs or representation.uses_codes:
@@ -65,7 +65,7 @@ def predict_policy_values(model, policy: PolicyLike, observations: np.ndarray | 
     """V(s, chi_policy) of a PPOPeVFA model at ``observations`` (a batch), without running the policy.
 
     :param policy: An SB3 actor-critic policy or model with the model's actor architecture, the path of a saved
-        model, a record of the history (``history.policy_data([i])`` entries for one policy) or, for parameter-based
+        model, a record of the history (``history.records([i])`` entries for one policy) or, for parameter-based
         representations, a flat parameter vector
     :return: Values, shape ``(batch,)``
     """
@@ -75,7 +75,7 @@ def predict_policy_values(model, policy: PolicyLike, observations: np.ndarray | 
     training = model.policy.training
     model.policy.set_training_mode(False)
     with th.no_grad():
-        embedding = model.policy.embed(PolicyData.from_numpy(record, model.device))
-        values = model.policy.predict_policy_values(obs_as_tensor(observations, model.device), embedding)
+        embedding = model.policy.embed(PolicyRecord.from_numpy(record, model.device))
+        values = model.policy.predict_values(obs_as_tensor(observations, model.device), embedding)
     model.policy.set_training_mode(training)
     return values.flatten().cpu().numpy()

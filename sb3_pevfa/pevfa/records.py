@@ -1,4 +1,9 @@
-"""Raw data that describes one policy: its actor parameters, state-action pairs and (optional) random code."""
+"""Policy records: the raw data that describes one policy (actor parameters, state-action pairs, random code).
+
+A *record* is the one name of a historical policy's data, in code (:class:`PolicyRecord`, :func:`record_policy`,
+``PolicyHistory.records``), in saved histories (``record/<field>``) and in the docs. Embeddings are never stored:
+they are recomputed from records by the current encoder.
+"""
 
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -13,11 +18,11 @@ from torch import nn
 from torch.nn import functional as F
 
 #: Names of the fields of a policy record, in storage order.
-POLICY_FIELDS = ("params", "states", "actions", "codes")
+RECORD_FIELDS = ("params", "states", "actions", "codes")
 
 
-class PolicyData(NamedTuple):
-    """Batched raw data of ``P`` policies (torch tensors), the input of a policy representation.
+class PolicyRecord(NamedTuple):
+    """The records of ``P`` policies as batched torch tensors: the input of a policy representation.
 
     :param params: Flat actor parameters, shape ``(P, n_params)`` (see :class:`ActorLayout`)
     :param states: Flattened, preprocessed probe states, shape ``(P, n_pairs, state_dim)``
@@ -31,8 +36,8 @@ class PolicyData(NamedTuple):
     codes: th.Tensor
 
     @classmethod
-    def from_numpy(cls, data: dict[str, np.ndarray], device: th.device | str = "cpu") -> "PolicyData":
-        return cls(*(th.as_tensor(data[name], device=device) for name in POLICY_FIELDS))
+    def from_numpy(cls, data: dict[str, np.ndarray], device: th.device | str = "cpu") -> "PolicyRecord":
+        return cls(*(th.as_tensor(data[name], device=device) for name in RECORD_FIELDS))
 
 
 @dataclass(frozen=True)
@@ -131,13 +136,13 @@ def encoded_action_dim(action_space: spaces.Space) -> int:
     return get_action_dim(action_space)
 
 
-def snapshot_policy(
+def record_policy(
     policy: ActorCriticPolicy,
     layout: ActorLayout,
     probe_obs: np.ndarray | dict[str, np.ndarray] | None,
     code: np.ndarray,
 ) -> dict[str, np.ndarray]:
-    """Record one policy: flat parameters, and actions sampled by the policy at ``probe_obs`` (SPR's pairs).
+    """The record of one policy (numpy arrays): flat parameters, and actions sampled at ``probe_obs`` (SPR's pairs).
 
     :param probe_obs: A batch of raw observations (as stored in a rollout buffer), or None for no pairs
     :param code: The policy's random code (empty unless the ``random`` representation is used)

@@ -7,7 +7,7 @@ import torch as th
 from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
 
 
-class _ValueTargetLambdaMixin:
+class ValueTargetLambdaMixin:
     """Advantages use ``gae_lambda``; value targets (``returns``) use ``value_target_lambda`` when it is set.
 
     ``value_target_lambda=None`` gives SB3's TD(gae_lambda) returns unchanged; ``1.0`` gives discounted
@@ -35,9 +35,9 @@ class _ValueTargetLambdaMixin:
             self.gae_lambda, self.advantages = gae_lambda, advantages
 
 
-class PeVFARolloutBuffer(_ValueTargetLambdaMixin, RolloutBuffer):
+class PeVFARolloutBuffer(ValueTargetLambdaMixin, RolloutBuffer):
     """:class:`~stable_baselines3.common.buffers.RolloutBuffer` with an optional separate value-target lambda."""
 
 
-class PeVFADictRolloutBuffer(_ValueTargetLambdaMixin, DictRolloutBuffer):
+class PeVFADictRolloutBuffer(ValueTargetLambdaMixin, DictRolloutBuffer):
     """:class:`~stable_baselines3.common.buffers.DictRolloutBuffer` with an optional separate value-target lambda."""

@@ -1,26 +1,20 @@
-"""A lean rollout and PPO update: SB3's math and random draws, fewer per-step Python and torch round trips.
+"""The fast path (``fast_path=True``): two of SB3's loops without work that PeVFA's critic makes expensive.
 
-- :func:`collect_rollouts` acts with the actor alone and computes the critic's values for the whole rollout (and
-  the truncation bootstraps) in one batched pass after it, instead of a critic call per step. Actions, log-probs
-  and the random draws are SB3's; values, returns and advantages agree with SB3's up to float round-off.
-- :func:`train_ppo` is SB3's ``PPO.train`` (same losses, minibatch order, early stopping and logs) on tensors
-  prepared once per update, with foreach gradient clipping and losses logged without a sync per minibatch.
-- Gaussian policies skip ``torch.distributions`` (the same formulas, computed directly).
+Built from SB3's and torch's public pieces (the policy's ``get_distribution``, ``predict_values`` and
+``evaluate_actions``, SB3's distributions with their argument checks, ``torch.nn.utils.clip_grad_norm_``), with
+SB3's math and random draws: results equal SB3's own path (``fast_path=False``) up to float round-off
+(``tests/test_fast_path.py``). What each saves is measured by ``benchmarks/fast_path.py`` (docs/benchmarks.md).
 
 Per-step callbacks see SB3's locals except ``values`` (not computed during the rollout).
 """
-
-import math
-from collections.abc import Iterable
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.distributions import DiagGaussianDistribution
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
+from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
@@ -28,68 +22,6 @@ from torch.nn import functional as F
 
 #: Observations per batched critic pass (bounds the memory of image rollouts)
 VALUE_CHUNK = 4096
-_LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def clip_grad_norm(parameters: Iterable[th.nn.Parameter], max_norm: float) -> th.Tensor:
-    """:func:`torch.nn.utils.clip_grad_norm_` (L2) with foreach kernels on every device (torch's own only uses them
-    on accelerators); same formula: scale by ``min(1, max_norm / (norm + 1e-6))``."""
-    grads = [p.grad for p in parameters if p.grad is not None]
-    if not grads:
-        return th.zeros(())
-    total = th.linalg.vector_norm(th.stack(th._foreach_norm(grads)))
-    th._foreach_mul_(grads, th.clamp(max_norm / (total + 1e-6), max=1.0))
-    return total
-
-
-def _is_gaussian(policy: ActorCriticPolicy) -> bool:
-    return type(policy.action_dist) is DiagGaussianDistribution and not policy.use_sde
-
-
-class ActionSampler:
-    """Actions and their log-probabilities from the actor alone (SB3's ``forward`` without the critic).
-
-    Gaussian policies (no gSDE) skip ``torch.distributions``: the standard deviation and the normaliser of the
-    log-density are computed once (the actor is fixed during a rollout) and ``actions = mean + std * noise`` uses
-    the draw of ``Normal.sample``; other distributions go through SB3's.
-    """
-
-    def __init__(self, policy: ActorCriticPolicy):
-        self.policy = policy
-        self.gaussian = _is_gaussian(policy)
-        if self.gaussian:
-            log_std = policy.log_std.detach()
-            self.std = log_std.exp()
-            self.log_normaliser = -(log_std.sum() + log_std.numel() * _LOG_SQRT_2PI)
-
-    def __call__(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
-        policy = self.policy
-        if self.gaussian:
-            features = BasePolicy.extract_features(policy, obs, policy.pi_features_extractor)
-            mean = policy.action_net(policy.mlp_extractor.forward_actor(features))
-            noise = th.randn_like(mean)
-            return noise * self.std + mean, self.log_normaliser - 0.5 * (noise**2).sum(dim=1)
-        distribution = policy.get_distribution(obs)
-        actions = distribution.get_actions()
-        return actions.reshape((-1, *policy.action_space.shape)), distribution.log_prob(actions)  # type: ignore[misc]
-
-
-def evaluate_actions(policy: ActorCriticPolicy, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-    """SB3's ``ActorCriticPolicy.evaluate_actions`` (values, log-probabilities, entropy); Gaussian policies without
-    ``torch.distributions`` (the same densities, in fewer operations)."""
-    if not _is_gaussian(policy):
-        return policy.evaluate_actions(obs, actions)  # type: ignore[return-value]
-    features = policy.extract_features(obs)
-    if policy.share_features_extractor:
-        latent_pi, latent_vf = policy.mlp_extractor(features)
-    else:
-        latent_pi = policy.mlp_extractor.forward_actor(features[0])
-        latent_vf = policy.mlp_extractor.forward_critic(features[1])
-    log_std = policy.log_std
-    z = (actions - policy.action_net(latent_pi)) / log_std.exp()
-    log_prob = -0.5 * (z**2).sum(dim=1) - (log_std.sum() + log_std.numel() * _LOG_SQRT_2PI)
-    entropy = (0.5 + _LOG_SQRT_2PI + log_std).sum().expand(len(z))  # Normal.entropy summed: the same for all states
-    return policy.value_net(latent_vf), log_prob, entropy
 
 
 def _stack(observations: list) -> np.ndarray | dict[str, np.ndarray]:
@@ -98,7 +30,8 @@ def _stack(observations: list) -> np.ndarray | dict[str, np.ndarray]:
     return np.stack(observations)
 
 
-def _rows(obs: PyTorchObs, index: slice | th.Tensor) -> PyTorchObs:
+def rows(obs: PyTorchObs, index: slice | th.Tensor | np.ndarray) -> PyTorchObs:
+    """The rows ``index`` of a batch of observations (a tensor or a dict of them)."""
     return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
 
 
@@ -118,7 +51,7 @@ def predict_values(policy: ActorCriticPolicy, obs: PyTorchObs) -> th.Tensor:
     """Critic values of a large batch, in chunks of :data:`VALUE_CHUNK`, ``(batch,)``."""
     n = len(next(iter(obs.values())) if isinstance(obs, dict) else obs)
     with th.no_grad():
-        chunks = [policy.predict_values(_rows(obs, slice(i, i + VALUE_CHUNK))) for i in range(0, n, VALUE_CHUNK)]
+        chunks = [policy.predict_values(rows(obs, slice(i, i + VALUE_CHUNK))) for i in range(0, n, VALUE_CHUNK)]
     return th.cat(chunks).flatten()
 
 
@@ -129,7 +62,12 @@ def collect_rollouts(
     rollout_buffer: RolloutBuffer,
     n_rollout_steps: int,
 ) -> bool:
-    """SB3's ``OnPolicyAlgorithm.collect_rollouts`` with the critic evaluated once, batched, after the rollout."""
+    """SB3's ``OnPolicyAlgorithm.collect_rollouts``, the actor alone acting, the critic evaluated after the rollout.
+
+    Each step asks the policy for its action distribution only (``get_distribution``: actions, log-probabilities,
+    SB3's draws and checks); the values of the whole rollout, of the truncated episodes' last observations
+    (bootstraps) and of the last observation come from one batched ``predict_values`` pass each.
+    """
     assert model._last_obs is not None, "No previous observation was provided"
     policy = model.policy
     policy.set_training_mode(False)
@@ -139,15 +77,16 @@ def collect_rollouts(
         policy.reset_noise(env.num_envs)
     callback.on_rollout_start()
     no_values = th.zeros(env.num_envs)
-    sample_actions = ActionSampler(policy)
     truncated: list[tuple[int, int, np.ndarray | dict]] = []  # (buffer position, env index, terminal observation)
     while n_steps < n_rollout_steps:
         if model.use_sde and model.sde_sample_freq > 0 and n_steps % model.sde_sample_freq == 0:
             policy.reset_noise(env.num_envs)
         with th.no_grad():
             obs_tensor = obs_as_tensor(model._last_obs, model.device)  # type: ignore[arg-type]
-            actions, log_probs = sample_actions(obs_tensor)
-        actions = actions.cpu().numpy()
+            distribution = policy.get_distribution(obs_tensor)
+            actions = distribution.get_actions()
+            log_probs = distribution.log_prob(actions)
+        actions = actions.cpu().numpy().reshape((-1, *model.action_space.shape))  # type: ignore[misc]
         clipped_actions = actions
         if isinstance(model.action_space, spaces.Box):
             if policy.squash_output:
@@ -187,6 +126,10 @@ def collect_rollouts(
 def train_ppo(model, clip_params: list[th.nn.Parameter] | None = None) -> None:
     """One PPO update: SB3's ``PPO.train`` after ``set_training_mode``/learning rate, with the same logs.
 
+    The rollout is turned into tensors once per update (SB3 copies every minibatch out of numpy), losses are logged
+    without a conversion per minibatch, and gradients are clipped by ``clip_grad_norm_`` with ``foreach=True``
+    (SB3 clips tensor by tensor on a CPU; the encoder adds many tensors).
+
     :param clip_params: Parameters whose gradient norm is clipped (default: all of the policy's)
     """
     policy, buffer = model.policy, model.rollout_buffer
@@ -212,7 +155,7 @@ def train_ppo(model, clip_params: list[th.nn.Parameter] | None = None) -> None:
         permutation = th.as_tensor(np.random.permutation(n), device=device)  # the draw of RolloutBuffer.get
         for start in range(0, n, model.batch_size):
             index = permutation[start : start + model.batch_size]
-            values, log_prob, entropy = evaluate_actions(policy, _rows(observations, index), actions[index])
+            values, log_prob, entropy = policy.evaluate_actions(rows(observations, index), actions[index])
             values = values.flatten()
             advantages = all_advantages[index]
             if model.normalize_advantage and len(advantages) > 1:
@@ -241,7 +184,7 @@ def train_ppo(model, clip_params: list[th.nn.Parameter] | None = None) -> None:
                 break
             policy.optimizer.zero_grad()
             loss.backward()
-            clip_grad_norm(params, model.max_grad_norm)
+            th.nn.utils.clip_grad_norm_(params, model.max_grad_norm, foreach=True)
             policy.optimizer.step()
         model._n_updates += 1
         if not continue_training:

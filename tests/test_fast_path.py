@@ -1,4 +1,4 @@
-"""The fast path (sb3_pevfa.common.lean_ppo) computes what SB3's own rollout and PPO update compute."""
+"""The fast path (sb3_pevfa.pevfa.fast_path) computes what SB3's own rollout and PPO update compute."""
 
 import gymnasium as gym
 import numpy as np
@@ -9,7 +9,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.common.lean_ppo import clip_grad_norm
 
 FIELDS = ("observations", "actions", "log_probs", "rewards", "episode_starts", "values", "returns", "advantages")
 
@@ -83,22 +82,6 @@ def test_early_stopping_and_logs_match(tmp_path):
     assert logs[True]["n_updates"] == logs[False]["n_updates"] < 20  # early stopping happened at the same epoch
     for key in ("train/approx_kl", "train/clip_fraction", "train/value_loss", "train/policy_gradient_loss", "train/std"):
         assert np.isclose(logs[True][key], logs[False][key], rtol=1e-3, atol=1e-6), key
-
-
-def test_clip_grad_norm_matches_torch():
-    th.manual_seed(0)
-    params = [th.nn.Parameter(th.randn(5, 3)), th.nn.Parameter(th.randn(4)), th.nn.Parameter(th.randn(2))]
-    params[2].grad = None
-    grads = [th.randn(5, 3) * 3, th.randn(4) * 3]
-    twins = [th.nn.Parameter(p.detach().clone()) for p in params]
-    for p, t, g in zip(params, twins, grads):
-        p.grad, t.grad = g.clone(), g.clone()
-    norm = clip_grad_norm(params, 0.5)
-    reference = th.nn.utils.clip_grad_norm_(twins, 0.5)
-    assert th.allclose(norm, reference)
-    for p, t in zip(params[:2], twins[:2]):
-        assert th.allclose(p.grad, t.grad)
-    assert clip_grad_norm([th.nn.Parameter(th.zeros(2))], 0.5) == 0  # no gradients at all
 
 
 def test_per_step_callbacks_see_sb3_locals():

@@ -12,8 +12,8 @@ from stable_baselines3.common.utils import polyak_update
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_pevfa.common.policy_data import PolicyData, state_dim
-from sb3_pevfa.common.representations import (
+from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
+from sb3_pevfa.pevfa.representations import (
     OriginPolicyRepresentation,
     PolicyRepresentation,
     SurfacePolicyRepresentation,
@@ -45,7 +45,7 @@ class RepresentationObjective(nn.Module):
         self.batch_policies = batch_policies
         self.learning_rate = learning_rate
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyData) -> tuple[th.Tensor, dict[str, float]]:
+    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
         """The loss on a batch of policies, and metrics to log."""
         raise NotImplementedError
 
@@ -97,7 +97,7 @@ class ContrastiveObjective(RepresentationObjective):
         self.key_encoder.requires_grad_(False)
         self.bilinear = nn.Parameter(th.eye(representation.embedding_dim))
 
-    def _encode(self, encoder: PolicyRepresentation, data: PolicyData) -> th.Tensor:
+    def _encode(self, encoder: PolicyRepresentation, data: PolicyRecord) -> th.Tensor:
         """One random augmentation of every policy of the batch, encoded."""
         if isinstance(encoder, OriginPolicyRepresentation):
             params = data.params
@@ -111,7 +111,7 @@ class ContrastiveObjective(RepresentationObjective):
             return encoder(data._replace(params=params), row_weights=row_weights)
         return encoder(data, keep=self.sample_ratio)  # SPR
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyData) -> tuple[th.Tensor, dict[str, float]]:
+    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
         query = self._encode(representation, data)
         with th.no_grad():
             key = self._encode(self.key_encoder, data)
@@ -175,7 +175,7 @@ class ActionPredictionObjective(RepresentationObjective):
             distribution = self.action_dist.proba_distribution(action_logits=params)
         return -distribution.log_prob(actions).mean()
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyData) -> tuple[th.Tensor, dict[str, float]]:
+    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
         n_policies, n_pairs = data.states.shape[:2]
         if n_pairs == 0:
             raise ValueError("objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0")

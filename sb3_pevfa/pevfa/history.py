@@ -1,5 +1,7 @@
 """The policy history: raw data of every recorded policy, and a FIFO of (observation, value target, policy id)."""
 
+import copy
+import io
 import json
 import os
 import pathlib
@@ -10,10 +12,12 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 
-from sb3_pevfa.common.policy_data import POLICY_FIELDS, state_dim
+from sb3_pevfa.pevfa.records import RECORD_FIELDS, state_dim
 
 #: Version of the file format written by :meth:`PolicyHistory.save`.
-HISTORY_FORMAT_VERSION = 1
+HISTORY_FORMAT_VERSION = 2
+#: Versions :meth:`PolicyHistory.load` reads (1: records were called ``policy/<field>``).
+_READABLE_VERSIONS = (1, 2)
 
 ObsBatch = np.ndarray | dict[str, np.ndarray]
 
@@ -140,7 +144,7 @@ class PolicyHistory:
         specs["policy_ids"] = ((), np.dtype(np.int64))
         self._samples = _Ring(specs, self.buffer_size)
         self._policies: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
-        self._policy_info: dict[int, dict[str, int | float]] = {}
+        self._record_info: dict[int, dict[str, int | float]] = {}
         self._sample_counts: dict[int, int] = {}
         self._next_id = 0
 
@@ -171,35 +175,36 @@ class PolicyHistory:
     def latest_policy_id(self) -> int | None:
         return next(reversed(self._policies)) if self._policies else None
 
-    def policy_info(self, policy_id: int) -> dict[str, int | float]:
-        """``n_updates`` and ``num_timesteps`` of the model when the policy was recorded, and ``episode_return``
-        (mean return of the episodes that ended during its rollout) once known."""
-        return dict(self._policy_info[policy_id])
+    def record_info(self, policy_id: int) -> dict[str, int | float]:
+        """Numbers about a record: ``num_timesteps`` (and ``n_updates``) of the model when the policy was recorded,
+        and ``episode_return`` (mean return of the episodes that ended during its rollout) once known."""
+        return dict(self._record_info[policy_id])
 
-    def update_policy_info(self, policy_id: int, **info: int | float) -> None:
+    def update_record_info(self, policy_id: int, **info: int | float) -> None:
         """Attach numbers to a recorded policy (saved with the history)."""
-        self._policy_info[policy_id].update(info)
+        self._record_info[policy_id].update(info)
 
-    def add_policy(self, record: dict[str, np.ndarray], n_updates: int = 0, num_timesteps: int = 0, **info: float) -> int:
-        """Store one policy's raw data (see :func:`~sb3_pevfa.common.policy_data.snapshot_policy`); returns its id."""
+    def add_record(self, record: dict[str, np.ndarray], **info: int | float) -> int:
+        """Store one policy's record (see :func:`~sb3_pevfa.pevfa.records.record_policy`) and numbers about it
+        (``record_info``); returns its id."""
         expected = {
             "params": (self.n_params,),
             "states": (self.n_state_action_pairs, state_dim(self.observation_space)),
             "actions": (self.n_state_action_pairs, get_action_dim(self.action_space)),
             "codes": (self.code_dim,),
         }
-        for name in POLICY_FIELDS:
+        for name in RECORD_FIELDS:
             if tuple(record[name].shape) != expected[name]:
                 raise ValueError(f"Policy record field {name!r} has shape {record[name].shape}, expected {expected[name]}")
         policy_id = self._next_id
         self._next_id += 1
-        self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in POLICY_FIELDS}
-        self._policy_info[policy_id] = {"n_updates": int(n_updates), "num_timesteps": int(num_timesteps), **info}
+        self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in RECORD_FIELDS}
+        self._record_info[policy_id] = dict(info)
         self._sample_counts[policy_id] = 0
         while len(self._policies) > self.max_policies:
             oldest = next(iter(self._policies))
             self._forget_samples(self._samples.drop_front(self._sample_counts[oldest]))
-            del self._policies[oldest], self._policy_info[oldest], self._sample_counts[oldest]
+            del self._policies[oldest], self._record_info[oldest], self._sample_counts[oldest]
         return policy_id
 
     def sample_policy_ids(self, n: int) -> np.ndarray:
@@ -207,14 +212,14 @@ class PolicyHistory:
         ids = np.fromiter(self._policies, dtype=np.int64, count=len(self._policies))
         return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
 
-    def policy_data(
-        self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = POLICY_FIELDS
+    def records(
+        self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS
     ) -> dict[str, np.ndarray]:
         """Stacked raw data of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
         (size 0 along their first data axis), which saves copying what a representation does not read."""
         records = [self._policies[int(pid)] for pid in policy_ids]
         data = {}
-        for name in POLICY_FIELDS:
+        for name in RECORD_FIELDS:
             if name in fields:
                 data[name] = np.stack([record[name] for record in records])
             else:
@@ -299,14 +304,13 @@ class PolicyHistory:
         )
 
     # ------------------------------------------------------------------ persistence
-    def save(self, path: str | pathlib.Path) -> None:
-        """Save as a numpy ``.npz`` archive (format version, signature, RNG state, policies and samples).
+    def save(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Save as a numpy ``.npz`` archive (format version, signature, RNG state, records and samples).
 
         A path without a suffix gets ``.npz``; a path with one is used as given (e.g. rl-zoo3's ``replay_buffer.pkl``).
+        The file is written to a temporary file beside it and then renamed, so a failed save leaves an existing file
+        as it was. A file-like object (e.g. ``io.BytesIO``) is written to directly.
         """
-        path = pathlib.Path(path)
-        if not path.suffix:
-            path = path.with_suffix(".npz")
         ids = self.policy_ids
         meta = {
             "format_version": HISTORY_FORMAT_VERSION,
@@ -314,28 +318,40 @@ class PolicyHistory:
             "rng_state": self.rng.bit_generator.state,
             "next_id": self._next_id,
             "policy_ids": ids,
-            "policy_info": [self._policy_info[pid] for pid in ids],
+            "record_info": [self._record_info[pid] for pid in ids],
         }
-        arrays = {f"policy/{name}": array for name, array in self.policy_data(ids).items()} if ids else {}
+        arrays = {f"record/{name}": array for name, array in self.records(ids).items()} if ids else {}
         arrays.update({f"sample/{name}": array for name, array in self._samples.get(np.arange(self.n_samples)).items()})
-        os.makedirs(path.parent, exist_ok=True)
-        with open(path, "wb") as handle:  # a file handle: numpy adds no suffix
-            np.savez(handle, meta=np.array(json.dumps(meta)), **arrays)
-
-    def load(self, path: str | pathlib.Path) -> "PolicyHistory":
-        """Load a history saved by :meth:`save` into this (empty or not) history; the file must match its signature.
-
-        This history's bounds apply: if the file holds more, the newest policies and samples are kept.
-        """
+        if not isinstance(path, (str, os.PathLike)):
+            np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
+            return
         path = pathlib.Path(path)
-        if not path.exists() and not path.suffix:
+        if not path.suffix:
             path = path.with_suffix(".npz")
+        os.makedirs(path.parent, exist_ok=True)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            with open(temporary, "wb") as handle:  # a file handle: numpy adds no suffix
+                np.savez(handle, meta=np.array(json.dumps(meta)), **arrays)
+            os.replace(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
+
+    def load(self, path: str | pathlib.Path | io.IOBase) -> "PolicyHistory":
+        """Load a history saved by :meth:`save` (a path or a file-like object); the file must match this history's
+        signature. The file is read and checked in full before this history is replaced: a failed load leaves it as
+        it was. This history's bounds apply: if the file holds more, the newest records and samples are kept.
+        """
+        if isinstance(path, (str, os.PathLike)):
+            path = pathlib.Path(path)
+            if not path.exists() and not path.suffix:
+                path = path.with_suffix(".npz")
         with np.load(path, allow_pickle=False) as archive:
             meta = json.loads(str(archive["meta"]))
-            if meta.get("format_version") != HISTORY_FORMAT_VERSION:
+            version = meta.get("format_version")
+            if version not in _READABLE_VERSIONS:
                 raise ValueError(
-                    f"History file {path} has format version {meta.get('format_version')}, "
-                    f"this sb3-pevfa reads version {HISTORY_FORMAT_VERSION}"
+                    f"History file {path} has format version {version}, this sb3-pevfa reads versions {_READABLE_VERSIONS}"
                 )
             mismatches = {
                 key: (meta["signature"].get(key), value)
@@ -348,16 +364,19 @@ class PolicyHistory:
                 )
                 raise ValueError(f"History file {path} does not match this model ({details})")
             arrays = {name: archive[name] for name in archive.files if name != "meta"}
-        self.reset()
-        ids = meta["policy_ids"]
-        for i, (policy_id, info) in enumerate(zip(ids, meta["policy_info"])):
-            self._next_id = policy_id
-            self.add_policy({name: arrays[f"policy/{name}"][i] for name in POLICY_FIELDS}, **info)
+        prefix, info_key = ("policy", "policy_info") if version == 1 else ("record", "record_info")
+        loaded = copy.copy(self)  # same spaces and bounds, its own storage: this history stays intact until the end
+        loaded.rng = np.random.default_rng()
+        loaded.reset()
+        for i, (policy_id, info) in enumerate(zip(meta["policy_ids"], meta[info_key])):
+            loaded._next_id = policy_id
+            loaded.add_record({name: arrays[f"{prefix}/{name}"][i] for name in RECORD_FIELDS}, **info)
             mask = arrays["sample/policy_ids"] == policy_id
             if mask.any():
                 observations = {name: arrays[f"sample/{name}"][mask] for name in self._obs_specs()}
                 obs = observations["obs"] if self._obs_keys is None else {k: observations[f"obs/{k}"] for k in self._obs_keys}
-                self.add_samples(obs, arrays["sample/targets"][mask], policy_id)
-        self._next_id = meta["next_id"]
-        self.rng.bit_generator.state = meta["rng_state"]
+                loaded.add_samples(obs, arrays["sample/targets"][mask], policy_id)
+        loaded._next_id = meta["next_id"]
+        loaded.rng.bit_generator.state = meta["rng_state"]
+        self.__dict__.update(loaded.__dict__)
         return self

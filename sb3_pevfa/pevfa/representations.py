@@ -7,11 +7,11 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
 
-from sb3_pevfa.common.policy_data import ActorLayout, PolicyData, encode_actions, encoded_action_dim, has_image, state_dim
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, encode_actions, encoded_action_dim, has_image, state_dim
 
 
 class PolicyRepresentation(nn.Module):
-    """Maps the raw data of ``P`` policies (:class:`PolicyData`) to embeddings of shape ``(P, embedding_dim)``.
+    """Maps the raw data of ``P`` policies (:class:`PolicyRecord`) to embeddings of shape ``(P, embedding_dim)``.
 
     Subclasses say which raw data they read, so the history stores what is needed.
     """
@@ -27,12 +27,12 @@ class PolicyRepresentation(nn.Module):
 
     @property
     def fields(self) -> tuple[str, ...]:
-        """The fields of :class:`PolicyData` this representation reads."""
+        """The fields of :class:`PolicyRecord` this representation reads."""
         if self.uses_state_action_pairs:
             return ("states", "actions")
         return ("codes",) if self.uses_codes else ("params",)
 
-    def forward(self, data: PolicyData) -> th.Tensor:
+    def forward(self, data: PolicyRecord) -> th.Tensor:
         raise NotImplementedError
 
 
@@ -72,7 +72,7 @@ class OriginPolicyRepresentation(PolicyRepresentation):
             code_dim += log_std_arch[-1]
         self.projection = nn.Linear(code_dim, embedding_dim)
 
-    def layer_codes(self, data: PolicyData, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+    def layer_codes(self, data: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
         """Concatenated layer (and log-std) codes, ``(P, code_dim)``.
 
         :param row_weights: Optional per-layer ``(P, out)`` 0/1 weights of the rows to keep (augmentation);
@@ -91,7 +91,7 @@ class OriginPolicyRepresentation(PolicyRepresentation):
             codes.append(self.log_std_encoder(log_std))
         return th.cat(codes, dim=1)
 
-    def forward(self, data: PolicyData, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+    def forward(self, data: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
         return self.projection(self.layer_codes(data, row_weights))
 
 
@@ -127,7 +127,7 @@ class SurfacePolicyRepresentation(PolicyRepresentation):
         self.pair_encoder = nn.Sequential(*create_mlp(input_dim, -1, list(pair_arch), activation_fn))
         self.projection = nn.Linear(pair_arch[-1], embedding_dim)
 
-    def forward(self, data: PolicyData, keep: float | None = None) -> th.Tensor:
+    def forward(self, data: PolicyRecord, keep: float | None = None) -> th.Tensor:
         """:param keep: Fraction of pairs to keep (default: ``subsample`` in training mode, all in eval mode)."""
         pairs = th.cat([data.states, encode_actions(data.actions, self.action_space)], dim=-1)
         n_pairs = pairs.shape[1]
@@ -147,7 +147,7 @@ class RawPolicyRepresentation(PolicyRepresentation):
     def __init__(self, layout: ActorLayout):
         super().__init__(layout.n_params)
 
-    def forward(self, data: PolicyData) -> th.Tensor:
+    def forward(self, data: PolicyRecord) -> th.Tensor:
         return data.params
 
 
@@ -168,7 +168,7 @@ class StatisticsPolicyRepresentation(PolicyRepresentation):
         quantiles = th.quantile(values, self.quantiles.to(values.dtype), dim=1).T
         return th.cat([values.mean(dim=1, keepdim=True), std, quantiles], dim=1)
 
-    def forward(self, data: PolicyData) -> th.Tensor:
+    def forward(self, data: PolicyRecord) -> th.Tensor:
         rows, log_std = self.layout.split(data.params)
         tensors = [part for layer in rows for part in (layer[..., :-1], layer[..., -1])]
         if log_std is not None:
@@ -181,7 +181,7 @@ class RandomPolicyRepresentation(PolicyRepresentation):
 
     uses_codes = True
 
-    def forward(self, data: PolicyData) -> th.Tensor:
+    def forward(self, data: PolicyRecord) -> th.Tensor:
         return data.codes
 
 
@@ -191,7 +191,7 @@ class NoPolicyRepresentation(PolicyRepresentation):
     def __init__(self):
         super().__init__(0)
 
-    def forward(self, data: PolicyData) -> th.Tensor:
+    def forward(self, data: PolicyRecord) -> th.Tensor:
         return data.params.new_zeros((data.params.shape[0], 0))
 
 

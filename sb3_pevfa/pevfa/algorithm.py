@@ -1,0 +1,416 @@
+"""What every PeVFA algorithm adds to its SB3 on-policy base (paper Algorithm 2), as a mixin.
+
+``class PPOPeVFA(PeVFAAlgorithm, PPO)`` and ``class A2CPeVFA(PeVFAAlgorithm, A2C)``: the base algorithm keeps its
+loop (``learn`` -> ``collect_rollouts`` -> ``train``) and its actor-critic update; this mixin records each policy
+before it acts, trains the critic on the history and the encoder on its objectives, and keeps the history's files.
+One iteration, as :meth:`PeVFAAlgorithm.train` reads:
+
+1. roll out pi_t (:meth:`collect_rollouts`): pi_t is recorded first and becomes the critic's behaviour policy; its
+   ``(observation, value target)`` samples are appended to the history when the rollout ends;
+2. CL / AUX steps on batches of recorded policies (:meth:`_train_objectives`);
+3. extra critic updates on the samples of historical policies 0..t-1, chi recomputed by the current encoder
+   (:meth:`_train_on_history`);
+4. the base algorithm's actor-critic update on the rollout (``update_order="joint"``), or critic steps on the
+   rollout, advantages recomputed with the updated critic, then the actor update with the critic frozen
+   (``"critic_first"``, the authors' order).
+"""
+
+import io
+import pathlib
+from collections.abc import Generator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
+from torch.nn import functional as F
+
+from sb3_pevfa.pevfa import fast_path
+from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
+from sb3_pevfa.pevfa.history import PolicyHistory
+from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
+from sb3_pevfa.pevfa.recorder import PolicyRecorder
+from sb3_pevfa.pevfa.records import PolicyRecord
+from sb3_pevfa.pevfa.representations import REPRESENTATIONS
+
+SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
+
+#: Valid values of ``update_order``.
+UPDATE_ORDERS = ("joint", "critic_first")
+#: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
+PEVFA_ARGUMENTS = (
+    "representation",
+    "embedding_dim",
+    "representation_kwargs",
+    "n_state_action_pairs",
+    "representation_objectives",
+    "objective_kwargs",
+    "critic_learning_rate",
+    "update_order",
+    "value_target_lambda",
+    "history_buffer_size",
+    "history_max_policies",
+    "history_batch_size",
+    "history_train_freq",
+    "history_learning_starts",
+    "fast_path",
+)
+#: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
+_POLICY_ARGUMENTS = PEVFA_ARGUMENTS[:6]
+_SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+
+
+def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
+    """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice)."""
+    ours = {name: arguments[name] for name in _POLICY_ARGUMENTS}
+    ours["representation_objectives"] = tuple(
+        [ours["representation_objectives"]] if isinstance(ours["representation_objectives"], str) else ours["representation_objectives"]
+    )
+    policy_kwargs = dict(policy_kwargs or {})
+    clash = sorted(set(policy_kwargs) & set(ours))
+    if clash:
+        raise ValueError(f"Pass {clash} as arguments of the algorithm, not in policy_kwargs")
+    return {**policy_kwargs, **ours}
+
+
+@contextmanager
+def action_space_errors_as_type_errors() -> Generator[None, None, None]:
+    """SB3 asserts on unsupported action spaces: raise a precise TypeError instead."""
+    try:
+        yield
+    except AssertionError as error:
+        if "action spaces" in str(error):
+            raise TypeError(str(error)) from error
+        raise
+
+
+def check_observation_space(observation_space: spaces.Space, algorithm: str) -> None:
+    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
+    for space in subspaces:
+        if not isinstance(space, _SUPPORTED_OBSERVATION_SPACES):
+            raise TypeError(
+                f"{algorithm} supports observation spaces {[s.__name__ for s in _SUPPORTED_OBSERVATION_SPACES]} "
+                f"and Dict of them, got {observation_space}"
+            )
+
+
+class PeVFAAlgorithm(OnPolicyAlgorithm):
+    """The PeVFA part of an on-policy algorithm; subclasses list it before their SB3 base (see the module)."""
+
+    policy: PeVFAActorCriticPolicy
+    history: PolicyHistory
+    recorder: PolicyRecorder
+    n_epochs: int
+    batch_size: int
+
+    def _init_pevfa(self, env: Any, arguments: dict[str, Any]) -> None:
+        """Keep and validate the PeVFA arguments (after the base constructor, before ``_setup_model``)."""
+        if self.env is not None:
+            check_observation_space(self.observation_space, type(self).__name__)
+        # Kept so that a model loaded without an env (env=None) can still learn on: see learn()
+        self.env_id = env if isinstance(env, str) else None
+        for name in PEVFA_ARGUMENTS[6:]:
+            setattr(self, name, arguments[name])
+        self.representation = arguments["representation"]
+        self.embedding_dim = arguments["embedding_dim"]
+        self._history_credit = 0
+        self._objective_credit: dict[str, int] = {}
+        self._rollout_episode_returns: list[float] = []
+        self._validate_pevfa_arguments(arguments["n_state_action_pairs"])
+
+    def _validate_pevfa_arguments(self, n_state_action_pairs: int) -> None:
+        if self.representation not in REPRESENTATIONS:
+            raise ValueError(f"Unknown representation {self.representation!r}, valid choices: {REPRESENTATIONS}")
+        if self.update_order not in UPDATE_ORDERS:
+            raise ValueError(f"Unknown update_order {self.update_order!r}, valid choices: {UPDATE_ORDERS}")
+        positive = {
+            "embedding_dim": self.embedding_dim,
+            "history_buffer_size": self.history_buffer_size,
+            "history_max_policies": self.history_max_policies,
+            "history_batch_size": self.history_batch_size,
+        }
+        non_negative = {
+            "history_train_freq": self.history_train_freq,
+            "history_learning_starts": self.history_learning_starts,
+            "n_state_action_pairs": n_state_action_pairs,
+        }
+        for name, value in positive.items():
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        for name, value in non_negative.items():
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+        lr = self.critic_learning_rate
+        if lr is not None and not callable(lr) and (not isinstance(lr, (int, float)) or not np.isfinite(lr) or lr <= 0):
+            raise ValueError(f"critic_learning_rate must be a positive finite float, a schedule or None, got {lr!r}")
+        lam = self.value_target_lambda
+        if lam is not None and (not isinstance(lam, (int, float)) or not 0.0 <= lam <= 1.0):
+            raise ValueError(f"value_target_lambda must be in [0, 1] or None, got {lam!r}")
+
+    def _setup_model(self) -> None:
+        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):
+            raise TypeError(
+                f"{type(self).__name__} needs a PeVFA policy (one of {sorted(self.policy_aliases)} or a subclass of "
+                f"PeVFAActorCriticPolicy), got {self.policy_class}"
+            )
+        if self.rollout_buffer_class is None:
+            dict_obs = isinstance(self.observation_space, spaces.Dict)
+            self.rollout_buffer_class = PeVFADictRolloutBuffer if dict_obs else PeVFARolloutBuffer
+        if self.value_target_lambda is not None:
+            if not issubclass(self.rollout_buffer_class, ValueTargetLambdaMixin):
+                raise ValueError(
+                    "value_target_lambda needs PeVFARolloutBuffer or PeVFADictRolloutBuffer (or a subclass) "
+                    f"as rollout_buffer_class, got {self.rollout_buffer_class.__name__}"
+                )
+            self.rollout_buffer_kwargs = {**self.rollout_buffer_kwargs, "value_target_lambda": self.value_target_lambda}
+        super()._setup_model()
+        self.critic_lr_schedule = (
+            self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
+        )
+        self.history = PolicyHistory(
+            self.observation_space,
+            self.action_space,
+            self.policy.layout.n_params,
+            n_state_action_pairs=self.policy.n_state_action_pairs,
+            code_dim=self.policy.code_dim,
+            buffer_size=self.history_buffer_size,
+            max_policies=self.history_max_policies,
+            seed=self.seed,
+            representation=self.representation,
+        )
+        self.recorder = PolicyRecorder(self.history, self.policy.layout)
+        self._critic_params = list(self.policy.critic_parameters())
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        state_dicts += [f"policy.{name}_optimizer" for name in self.policy.objectives]
+        return state_dicts, variables
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params"]
+
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        super()._update_learning_rate(optimizers)
+        critic_lr = self.critic_lr_schedule(self._current_progress_remaining)
+        self.logger.record("pevfa/critic_learning_rate", critic_lr)
+        for group in self.policy.optimizer.param_groups:
+            if group.get("name") == "critic":
+                group["lr"] = critic_lr
+
+    # ------------------------------------------------------------------ rollout: record, act, keep the samples
+    def record_behaviour_policy(self) -> int:
+        """Record the live policy (unless unchanged since the latest record) and make it the critic's behaviour
+        policy: the one whose chi the rollout's values use. Returns its id."""
+        assert self._last_obs is not None, "No previous observation was provided"
+        self.policy.set_training_mode(False)  # as SB3's rollouts: batch norm and dropout in evaluation mode
+        policy_id = self.recorder.record(
+            self.policy, self._last_obs, n_updates=self._n_updates, num_timesteps=self.num_timesteps
+        )
+        record = PolicyRecord.from_numpy(self.history.records([policy_id]), self.device)
+        self.policy.set_behaviour_record(record)
+        return policy_id
+
+    def collect_rollouts(
+        self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer, n_rollout_steps: int
+    ) -> bool:
+        policy_id = self.record_behaviour_policy()
+        self._rollout_episode_returns = []
+        if self.fast_path:
+            complete = fast_path.collect_rollouts(self, env, callback, rollout_buffer, n_rollout_steps)
+        else:
+            complete = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+        if complete:
+            self.recorder.add_rollout(rollout_buffer, policy_id, self._rollout_episode_returns)
+        return complete
+
+    def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
+        super()._update_info_buffer(infos, dones)
+        self._rollout_episode_returns.extend(info["episode"]["r"] for info in infos if "episode" in info)
+
+    # ------------------------------------------------------------------ training
+    def _critic_step(self, loss: th.Tensor) -> None:
+        self.policy.optimizer.zero_grad()
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=self.fast_path or None)
+        self.policy.optimizer.step()
+
+    def _train_on_history(self) -> list[float]:
+        """Extra critic updates on the samples of historical policies (Algorithm 2, line 8)."""
+        if self.history_train_freq == 0 or self.num_timesteps < self.history_learning_starts:
+            return []
+        self._history_credit += self.n_steps * self.n_envs
+        n_updates, self._history_credit = divmod(self._history_credit, self.history_train_freq)
+        current = self.history.latest_policy_id
+        fields = self.policy.representation.fields
+        losses = []
+        for _ in range(n_updates):
+            batch = self.history.sample(self.history_batch_size, exclude_policy=current)
+            if batch is None:
+                break
+            observations, targets, policy_ids = batch
+            unique_ids, inverse = np.unique(policy_ids, return_inverse=True)
+            records = PolicyRecord.from_numpy(self.history.records(unique_ids, fields), self.device)
+            chi = self.policy.embed(records)[th.as_tensor(inverse, device=self.device)]
+            values = self.policy.predict_values(obs_as_tensor(observations, self.device), chi)
+            loss = F.mse_loss(values.flatten(), th.as_tensor(targets, device=self.device))
+            self._critic_step(loss)
+            losses.append(loss.item())
+        return losses
+
+    def _train_objectives(self) -> dict[str, list[float]]:
+        """CL / AUX steps on batches of recorded policies (Algorithm 3), each on its own schedule and optimizer."""
+        metrics: dict[str, list[float]] = {}
+        for name, objective in self.policy.objectives.items():
+            if self.num_timesteps < objective.learning_starts:
+                continue
+            credit = self._objective_credit.get(name, 0) + self.n_steps * self.n_envs
+            n_updates, self._objective_credit[name] = divmod(credit, objective.train_freq)
+            optimizer = getattr(self.policy, f"{name}_optimizer")
+            metrics[f"{name}_updates"] = []
+            for _ in range(n_updates):
+                policy_ids = self.history.sample_policy_ids(objective.batch_policies)
+                if len(policy_ids) < 2:  # a contrast needs negatives; AUX waits as well
+                    break
+                records = PolicyRecord.from_numpy(self.history.records(policy_ids), self.device)
+                loss, values = objective.loss(self.policy.representation, records)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                objective.after_step(self.policy.representation)
+                for key, value in values.items():
+                    metrics.setdefault(key, []).append(value)
+                metrics[f"{name}_updates"].append(1.0)
+        return metrics
+
+    def _rollout_critic_schedule(self) -> tuple[int, int]:
+        """Epochs and minibatch size of the critic's steps on the rollout in the ``critic_first`` order."""
+        raise NotImplementedError
+
+    def _train_critic_on_rollout(self) -> list[float]:
+        """Critic epochs on the current rollout with chi of its behaviour policy (``critic_first`` order)."""
+        observations = fast_path.flat_observations(self.rollout_buffer, self.device, env_major=False)
+        returns = th.as_tensor(self.rollout_buffer.returns.reshape(-1), device=self.device)
+        n_epochs, batch_size = self._rollout_critic_schedule()
+        losses = []
+        for _ in range(n_epochs):
+            indices = np.random.permutation(len(returns))
+            for start in range(0, len(returns), batch_size):
+                index = indices[start : start + batch_size]
+                batch = fast_path.rows(observations, index)
+                loss = F.mse_loss(self.policy.predict_values(batch).flatten(), returns[index])
+                self._critic_step(loss)
+                losses.append(loss.item())
+        return losses
+
+    def _recompute_advantages(self) -> None:
+        """GAE with the updated critic (``critic_first`` order)."""
+        buffer = self.rollout_buffer
+        self.policy.set_training_mode(False)
+        values = fast_path.predict_values(self.policy, fast_path.flat_observations(buffer, self.device, env_major=False))
+        with th.no_grad():
+            last_values = self.policy.predict_values(obs_as_tensor(self._last_obs, self.device))  # type: ignore[arg-type]
+        buffer.values = values.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs).astype(np.float32)
+        buffer.compute_returns_and_advantage(last_values, self._last_episode_starts)  # type: ignore[arg-type]
+        self.policy.set_training_mode(True)
+
+    def _train_actor_critic(self) -> None:
+        """The base algorithm's actor-critic update on the rollout (SB3's ``train``)."""
+        super().train()  # type: ignore[safe-super]
+
+    def train(self) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        objective_metrics = self._train_objectives()
+        history_losses = self._train_on_history()
+        for key, values in objective_metrics.items():
+            self.logger.record(f"pevfa/{key}", len(values) if key.endswith("_updates") else float(np.mean(values)))
+        if self.update_order == "critic_first":
+            critic_losses = self._train_critic_on_rollout()
+            self.logger.record("pevfa/critic_value_loss", float(np.mean(critic_losses)))
+            self._recompute_advantages()
+            with self.policy.critic_frozen():
+                self._train_actor_critic()
+        else:
+            self._train_actor_critic()
+        self._record_pevfa_logs(history_losses)
+
+    def _record_pevfa_logs(self, history_losses: list[float]) -> None:
+        self.logger.record("pevfa/history_updates", len(history_losses))
+        if history_losses:
+            self.logger.record("pevfa/history_value_loss", float(np.mean(history_losses)))
+        self.logger.record("pevfa/n_policies", self.history.n_policies)
+        self.logger.record("pevfa/history_samples", self.history.n_samples)
+        self.logger.record("pevfa/history_memory_mb", self.history.nbytes / 2**20)
+        self.logger.record("pevfa/policy_id", self.history.latest_policy_id)
+        if self.policy.representation.embedding_dim > 0:
+            self.policy.set_training_mode(False)
+            self.logger.record("pevfa/embedding_norm", self.policy.behaviour_embedding().norm().item())
+
+    def learn(
+        self: SelfPeVFAAlgorithm,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str | None = None,
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfPeVFAAlgorithm:
+        if self.env is None and self.env_id is not None:
+            # Loaded with env=None from a model that was built from an env id: rebuild that env (seeded).
+            self.set_env(make_vec_env(self.env_id, n_envs=self.n_envs, seed=self.seed))
+        super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name or type(self).__name__,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+        if self._last_obs is not None:
+            self.record_behaviour_policy()  # the trained policy: the last record, and the critic's default
+        return self
+
+    # ------------------------------------------------------------------ persistence
+    def save_history(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Save the policy history (``.npz``; large, so apart from the model, as SB3 does with replay buffers)."""
+        self.history.save(path)
+
+    def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Load a history saved by :meth:`save_history`; it must match this model (representation, spaces, actor)."""
+        self.history.load(path)
+
+    def save_replay_buffer(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Alias of :meth:`save_history`, the name rl-zoo3's ``--save-replay-buffer`` calls."""
+        self.save_history(path)
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.IOBase, truncate_last_traj: bool = True) -> None:
+        """Alias of :meth:`load_history`, the name rl-zoo3's ``-i`` (continue training) calls.
+
+        :param truncate_last_traj: Ignored (a HER replay buffer option of SB3)
+        """
+        self.load_history(path)
+
+    def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
+        # The global RNG states travel with the model so that a resumed run continues as an uninterrupted one.
+        self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
+        try:
+            super().save(path, exclude=exclude, include=include)
+        finally:
+            del self._rng_states
+
+    @classmethod
+    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any):  # type: ignore[override]
+        model = super().load(path, *args, **kwargs)
+        rng_states = model.__dict__.pop("_rng_states", None)
+        if rng_states is not None and model.seed is not None:
+            th.set_rng_state(rng_states["torch"])
+            np.random.set_state(rng_states["numpy"])
+        return model

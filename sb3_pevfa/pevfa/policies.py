@@ -1,0 +1,315 @@
+"""Actor-critic policies whose critic is a PeVFA V(s, chi_pi)."""
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_pevfa.pevfa.critics import PeVFAValueHead
+from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, state_dim
+from sb3_pevfa.pevfa.representations import PolicyRepresentation, make_representation
+
+
+def _check_objectives(objectives: tuple[str, ...], objective_kwargs: dict[str, dict[str, Any]]) -> None:
+    unknown = [name for name in objectives if name not in OBJECTIVES]
+    if unknown:
+        raise ValueError(f"Unknown representation objectives {unknown}, valid choices: {OBJECTIVES}")
+    if len(set(objectives)) != len(objectives):
+        raise ValueError(f"representation_objectives lists an objective twice: {objectives}")
+    unused = sorted(set(objective_kwargs) - set(objectives))
+    if unused:
+        raise ValueError(f"objective_kwargs given for {unused}, which are not in representation_objectives={objectives}")
+
+
+class PeVFAActorCriticPolicy(ActorCriticPolicy):
+    """SB3's :class:`~stable_baselines3.common.policies.ActorCriticPolicy` with a policy-extended critic.
+
+    The actor is SB3's, unchanged. The critic V(s, chi) reads the state stream (``net_arch["vf"]``, paper: one layer
+    of 64) and chi, a policy's embedding: :meth:`predict_values`, :meth:`evaluate_actions` and :meth:`forward` take
+    ``chi`` as an argument. Left out (``chi=None``, as SB3's own loops call them), it is the embedding of the
+    *behaviour* policy, the record set by :meth:`set_behaviour_record` (the policy that collected the current data;
+    its record, not the live actor, so no gradient reaches the actor through chi). Before any policy is recorded,
+    chi is computed from the live actor's parameters.
+
+    Extra parameters (the rest are SB3's):
+
+    :param representation: One of ``opr``, ``spr``, ``rpr``, ``random``, ``stats``, ``none``
+    :param embedding_dim: Size of chi for ``opr``, ``spr`` and ``random``
+    :param representation_kwargs: Keyword arguments of the representation (e.g. ``layer_arch``, ``subsample``)
+    :param n_state_action_pairs: State-action pairs recorded per policy (SPR's data)
+    :param critic_embedding_arch: Embedding stream of the critic (paper: [64])
+    :param critic_head_arch: Layers after the streams are combined (paper: [128])
+    :param critic_combine: ``concat`` (paper) or ``product``
+    :param critic_activation_fn: Activation of the embedding stream and head (default: ``activation_fn``)
+    :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
+    :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
+        (see :mod:`sb3_pevfa.pevfa.objectives`)
+
+    Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.Tanh,
+        *args: Any,
+        representation: str = "opr",
+        embedding_dim: int = 64,
+        representation_kwargs: dict[str, Any] | None = None,
+        n_state_action_pairs: int = 200,
+        critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
+        critic_head_arch: list[int] | tuple[int, ...] = (128,),
+        critic_combine: str = "concat",
+        critic_activation_fn: type[nn.Module] | None = None,
+        representation_objectives: tuple[str, ...] | list[str] = (),
+        objective_kwargs: dict[str, dict[str, Any]] | None = None,
+        **kwargs: Any,
+    ):
+        if kwargs.get("optimizer_kwargs") is None and kwargs.get("optimizer_class", th.optim.Adam) is th.optim.Adam:
+            # SB3's Adam settings (eps=1e-5) with the fused kernel: one call per step instead of a Python loop over
+            # the parameter tensors (the encoder adds many). Pass optimizer_kwargs=dict(eps=1e-5) for SB3's own.
+            kwargs["optimizer_kwargs"] = dict(eps=1e-5, fused=True)
+        if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
+            net_arch = dict(pi=[64, 64], vf=[64])
+        if not isinstance(n_state_action_pairs, (int, np.integer)) or n_state_action_pairs < 0:
+            raise ValueError(f"n_state_action_pairs must be an int >= 0, got {n_state_action_pairs!r}")
+        if representation == "spr" and n_state_action_pairs == 0:
+            raise ValueError("representation='spr' needs n_state_action_pairs > 0")
+        if has_image(observation_space):
+            n_state_action_pairs = 0
+        self.representation_name = representation
+        self.embedding_dim = embedding_dim
+        self.representation_kwargs = dict(representation_kwargs or {})
+        self.n_state_action_pairs = int(n_state_action_pairs)
+        self.critic_embedding_arch = list(critic_embedding_arch)
+        self.critic_head_arch = list(critic_head_arch)
+        self.critic_combine = critic_combine
+        self.critic_activation_fn = critic_activation_fn
+        self.representation_objectives = tuple(representation_objectives)
+        self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
+        _check_objectives(self.representation_objectives, self.objective_kwargs)
+        #: False inside :meth:`critic_frozen`: values carry no gradient
+        self.critic_trainable = True
+        self._embedding_cache: th.Tensor | None = None
+        super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        self.layout = ActorLayout.from_policy(self)
+        self.representation: PolicyRepresentation = make_representation(
+            self.representation_name,
+            self.layout,
+            self.observation_space,
+            self.action_space,
+            self.embedding_dim,
+            **self.representation_kwargs,
+        )
+        self.value_net = PeVFAValueHead(
+            self.mlp_extractor.latent_dim_vf,
+            self.representation.embedding_dim,
+            self.critic_embedding_arch,
+            self.critic_head_arch,
+            self.critic_combine,
+            self.critic_activation_fn or self.activation_fn,
+        )
+        if self.ortho_init:
+            self.value_net.init_weights(self.init_weights)
+        self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
+        # The behaviour policy's record travels with the policy's state dict (empty fields stay out of it).
+        behaviour = {
+            "behaviour_params": th.zeros(self.layout.n_params),
+            "behaviour_states": th.zeros(self.n_state_action_pairs, state_dim(self.observation_space)),
+            "behaviour_actions": th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)),
+            "behaviour_codes": th.zeros(self.code_dim),
+            "has_behaviour": th.zeros(()),  # 1.0 once a record was set (a float: SB3's tests randomise state dicts)
+        }
+        for name, tensor in behaviour.items():
+            self.register_buffer(name, tensor, persistent=tensor.numel() > 0)
+        self.objectives = nn.ModuleDict(
+            {
+                name: make_objective(
+                    name, self.representation, self.observation_space, self.action_space, **self.objective_kwargs.get(name, {})
+                )
+                for name in self.representation_objectives
+            }
+        )
+        excluded = {id(p) for p in [*self.critic_parameters(), *self.objectives.parameters()]}
+        actor_params = [p for p in self.parameters() if id(p) not in excluded]
+        self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            [
+                {"params": actor_params, "name": "actor"},
+                {"params": list(self.critic_parameters()), "name": "critic"},
+            ],
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,
+        )
+        # One optimizer per objective: the shared encoder and the objective's own modules, at the objective's rate.
+        for name, objective in self.objectives.items():
+            params = [*self.representation.parameters(), *(p for p in objective.parameters() if p.requires_grad)]
+            optimizer = self.optimizer_class(params, lr=objective.learning_rate, **self.optimizer_kwargs)  # type: ignore[call-arg]
+            setattr(self, f"{name}_optimizer", optimizer)
+
+    def critic_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters trained by the value loss only: state stream, embedding stream, head and representation.
+
+        A shared features extractor belongs to the actor group (as in SB3, it gets both losses)."""
+        modules: list[nn.Module] = [self.mlp_extractor.value_net, self.value_net, self.representation]
+        if not self.share_features_extractor:
+            modules.append(self.vf_features_extractor)
+        for module in modules:
+            yield from module.parameters()
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            representation=self.representation_name,
+            embedding_dim=self.embedding_dim,
+            representation_kwargs=self.representation_kwargs,
+            n_state_action_pairs=self.n_state_action_pairs,
+            critic_embedding_arch=self.critic_embedding_arch,
+            critic_head_arch=self.critic_head_arch,
+            critic_combine=self.critic_combine,
+            critic_activation_fn=self.critic_activation_fn,
+            representation_objectives=self.representation_objectives,
+            objective_kwargs=self.objective_kwargs,
+        )
+        return data
+
+    # ------------------------------------------------------------------ the critic V(s, chi)
+    def _latents(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        features = self.extract_features(obs)
+        if self.share_features_extractor:
+            return self.mlp_extractor(features)
+        return self.mlp_extractor.forward_actor(features[0]), self.mlp_extractor.forward_critic(features[1])
+
+    def _values(self, latent_vf: th.Tensor, chi: th.Tensor | None) -> th.Tensor:
+        chi = self.behaviour_embedding() if chi is None else chi
+        if not self.critic_trainable:
+            with th.no_grad():
+                return self.value_net(latent_vf.detach(), chi.detach())
+        return self.value_net(latent_vf, chi)
+
+    def forward(
+        self, obs: th.Tensor, deterministic: bool = False, chi: th.Tensor | None = None
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """SB3's forward (actions, values, log-probabilities) with values V(s, chi).
+
+        :param chi: Embedding ``(1 or batch, embedding_dim)`` of the policy whose values are wanted
+            (default: the behaviour policy's)
+        """
+        latent_pi, latent_vf = self._latents(obs)
+        values = self._values(latent_vf, chi)
+        distribution = self._get_action_dist_from_latent(latent_pi)
+        actions = distribution.get_actions(deterministic=deterministic)
+        log_prob = distribution.log_prob(actions)
+        actions = actions.reshape((-1, *self.action_space.shape))  # type: ignore[misc]
+        return actions, values, log_prob
+
+    def evaluate_actions(
+        self, obs: PyTorchObs, actions: th.Tensor, chi: th.Tensor | None = None
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
+        """SB3's evaluate_actions (values, log-probabilities, entropy) with values V(s, chi).
+
+        :param chi: As in :meth:`forward`; in training mode the behaviour policy's chi is recomputed with gradient,
+            so the value loss trains the encoder (E2E)
+        """
+        latent_pi, latent_vf = self._latents(obs)
+        values = self._values(latent_vf, chi)
+        distribution = self._get_action_dist_from_latent(latent_pi)
+        return values, distribution.log_prob(actions), distribution.entropy()
+
+    def predict_values(self, obs: PyTorchObs, chi: th.Tensor | None = None) -> th.Tensor:
+        """V(s, chi), ``(batch, 1)``.
+
+        :param chi: Embeddings ``(batch, embedding_dim)`` matching ``obs`` (e.g. of many historical policies), or one
+            ``(1, embedding_dim)`` broadcast to all; default: the behaviour policy's
+        """
+        features = super(ActorCriticPolicy, self).extract_features(obs, self.vf_features_extractor)
+        return self._values(self.mlp_extractor.forward_critic(features), chi)
+
+    @contextmanager
+    def critic_frozen(self) -> Iterator[None]:
+        """Within this context values carry no gradient (the paper's order: the actor update after the critic's)."""
+        self.critic_trainable = False
+        self.clear_embedding_cache()
+        try:
+            yield
+        finally:
+            self.critic_trainable = True
+            self.clear_embedding_cache()
+
+    # ------------------------------------------------------------------ policy embeddings
+    def embed(self, records: PolicyRecord) -> th.Tensor:
+        """chi of ``P`` recorded policies, ``(P, embedding_dim)``."""
+        return self.representation(records)
+
+    def set_behaviour_record(self, record: PolicyRecord) -> None:
+        """Make the critic evaluate, by default, the policy of ``record`` (one policy, ``P == 1``)."""
+        with th.no_grad():
+            self.behaviour_params.copy_(record.params[0])
+            self.behaviour_states.copy_(record.states[0])
+            self.behaviour_actions.copy_(record.actions[0])
+            self.behaviour_codes.copy_(record.codes[0])
+            self.has_behaviour.fill_(1.0)
+        self.clear_embedding_cache()
+
+    def behaviour_record(self) -> PolicyRecord:
+        """The behaviour policy's record; before any record, one of the live actor's parameters."""
+        if not bool(self.has_behaviour):
+            if self.representation.uses_state_action_pairs or self.representation.uses_codes:
+                raise RuntimeError(
+                    f"representation={self.representation_name!r} needs a recorded policy: train first, or call "
+                    "set_behaviour_record() with a record of the policy history"
+                )
+            params = self.layout.flatten(self).unsqueeze(0)
+            return PolicyRecord(params, self.behaviour_states[None], self.behaviour_actions[None], self.behaviour_codes[None])
+        return PolicyRecord(
+            self.behaviour_params[None], self.behaviour_states[None], self.behaviour_actions[None], self.behaviour_codes[None]
+        )
+
+    def behaviour_embedding(self) -> th.Tensor:
+        """chi of the behaviour policy, ``(1, embedding_dim)``: recomputed (with gradient) while the critic trains,
+        cached otherwise (rollouts, evaluation, frozen critic)."""
+        if self.training and self.critic_trainable:
+            return self.embed(self.behaviour_record())
+        if self._embedding_cache is None:
+            with th.no_grad():
+                embedding = self.embed(self.behaviour_record())
+            if not bool(self.has_behaviour):
+                return embedding
+            self._embedding_cache = embedding
+        return self._embedding_cache
+
+    def clear_embedding_cache(self) -> None:
+        self._embedding_cache = None
+
+    def set_training_mode(self, mode: bool) -> None:
+        super().set_training_mode(mode)
+        self.clear_embedding_cache()
+
+
+class PeVFAActorCriticCnnPolicy(PeVFAActorCriticPolicy):
+    """CNN policy (NatureCNN features). OPR encodes the actor's MLP head (``policy_net`` and ``action_net``)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class PeVFAMultiInputActorCriticPolicy(PeVFAActorCriticPolicy):
+    """Policy for Dict observations (CombinedExtractor features)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+

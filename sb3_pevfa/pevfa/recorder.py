@@ -1,0 +1,61 @@
+"""The recorder: one record per policy update into a :class:`~sb3_pevfa.pevfa.history.PolicyHistory`."""
+
+import numpy as np
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.policies import ActorCriticPolicy
+
+from sb3_pevfa.pevfa.history import ObsBatch, PolicyHistory
+from sb3_pevfa.pevfa.records import ActorLayout, record_policy
+
+
+def _rows(obs: ObsBatch, index: np.ndarray) -> ObsBatch:
+    return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
+
+
+class PolicyRecorder:
+    """Records each policy once, before it acts, and then the ``(observation, value target)`` samples it collected.
+
+    A record holds the actor's flat parameters, the actions it samples at ``n_state_action_pairs`` probe states
+    drawn from the history (SPR's pairs) and a random code (``random`` representation); see
+    :func:`~sb3_pevfa.pevfa.records.record_policy`.
+
+    :param history: Where records and samples go
+    :param layout: The actor's parameter layout
+    """
+
+    def __init__(self, history: PolicyHistory, layout: ActorLayout):
+        self.history = history
+        self.layout = layout
+
+    def _probe_observations(self, fallback: ObsBatch) -> ObsBatch | None:
+        n_pairs = self.history.n_state_action_pairs
+        if n_pairs == 0:
+            return None
+        observations = self.history.sample_observations(n_pairs)
+        if observations is not None:
+            return observations
+        # Nothing recorded yet (first policy): probe at the fallback observations (the envs' current ones).
+        n_rows = len(next(iter(fallback.values())) if isinstance(fallback, dict) else fallback)
+        return _rows(fallback, self.history.rng.integers(n_rows, size=n_pairs))
+
+    def record(self, policy: ActorCriticPolicy, fallback_obs: ObsBatch, **info: int | float) -> int:
+        """Record ``policy`` unless it equals the latest record; returns the id of its record.
+
+        :param fallback_obs: Observations to probe at while the history holds no sample (the first policy)
+        :param info: Numbers kept with a new record (``record_info``), e.g. ``num_timesteps``
+        """
+        history = self.history
+        latest = history.latest_policy_id
+        params = self.layout.flatten(policy).cpu().numpy()
+        if latest is None or not np.array_equal(history.records([latest], fields=("params",))["params"][0], params):
+            code = history.rng.uniform(-1.0, 1.0, size=history.code_dim)
+            record = record_policy(policy, self.layout, self._probe_observations(fallback_obs), code)
+            latest = history.add_record(record, **info)
+        return latest
+
+    def add_rollout(self, buffer: RolloutBuffer, policy_id: int, episode_returns: list[float]) -> None:
+        """Append the rollout's samples (observations and value targets) for the policy that collected them, and the
+        mean return of the episodes that ended during it (``episode_return``)."""
+        self.history.add_samples(buffer.observations, buffer.returns, policy_id)
+        if episode_returns:
+            self.history.update_record_info(policy_id, episode_return=float(np.mean(episode_returns)))
