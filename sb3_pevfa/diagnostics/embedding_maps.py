@@ -5,8 +5,8 @@ import pathlib
 import numpy as np
 import torch as th
 
-from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
+from sb3_pevfa.pevfa.records import PolicyRecord
 
 
 def policy_embeddings(model, batch_size: int = 256) -> tuple[np.ndarray, np.ndarray]:

@@ -10,11 +10,11 @@ from scipy.stats import spearmanr
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
+from sb3_pevfa.envs.point_walker import point_walker_observation, point_walker_utility
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord
 from sb3_pevfa.pevfa.representations import OriginPolicyRepresentation, RawPolicyRepresentation
-from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
-from sb3_pevfa.envs.point_walker import point_walker_observation, point_walker_utility
 
 #: Synthetic policies: 6 -> 2 -> 2 -> 2 actions, tanh everywhere (2 hidden layers of 2 units), deterministic.
 POLICY_LAYOUT = ActorLayout(linear_shapes=((2, 6), (2, 2), (2, 2)), log_std_shape=())

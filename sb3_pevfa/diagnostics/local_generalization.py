@@ -12,8 +12,8 @@ from stable_baselines3.common.utils import obs_as_tensor
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_pevfa.pevfa.records import PolicyRecord, flatten_observations, state_dim
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
+from sb3_pevfa.pevfa.records import PolicyRecord, flatten_observations, state_dim
 
 #: The four error curves, in ``pevfa/local_gen/<name>``.
 ERROR_KEYS = ("pevfa_before", "pevfa_after", "vfa_before", "vfa_after")

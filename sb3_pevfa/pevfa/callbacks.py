@@ -1,6 +1,5 @@
 """A callback that keeps a policy history of a plain SB3 on-policy actor-critic run (PPO, A2C), for analysis."""
 
-import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import ActorCriticPolicy
 
@@ -55,7 +54,9 @@ class PolicyHistoryCallback(BaseCallback):
                 seed=self.model.seed,
             )
         elif self.history.n_params != layout.n_params:
-            raise ValueError(f"History stores {self.history.n_params} actor parameters, the model's actor has {layout.n_params}")
+            raise ValueError(
+                f"History stores {self.history.n_params} actor parameters, the model's actor has {layout.n_params}"
+            )
         self.recorder = PolicyRecorder(self.history, layout)
 
     def _on_step(self) -> bool:
@@ -64,7 +65,11 @@ class PolicyHistoryCallback(BaseCallback):
 
     def _on_rollout_end(self) -> None:
         buffer = self.model.rollout_buffer
-        first_obs = {k: v[0] for k, v in buffer.observations.items()} if isinstance(buffer.observations, dict) else buffer.observations[0]
+        first_obs = (
+            {k: v[0] for k, v in buffer.observations.items()}
+            if isinstance(buffer.observations, dict)
+            else buffer.observations[0]
+        )
         start = self.model.num_timesteps - buffer.buffer_size * buffer.n_envs
         policy_id = self.recorder.record(self.model.policy, first_obs, num_timesteps=start)
         self.recorder.add_rollout(buffer, policy_id, self._episode_returns)

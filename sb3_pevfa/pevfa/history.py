@@ -212,9 +212,7 @@ class PolicyHistory:
         ids = np.fromiter(self._policies, dtype=np.int64, count=len(self._policies))
         return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
 
-    def records(
-        self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS
-    ) -> dict[str, np.ndarray]:
+    def records(self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS) -> dict[str, np.ndarray]:
         """Stacked raw data of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
         (size 0 along their first data axis), which saves copying what a representation does not read."""
         records = [self._policies[int(pid)] for pid in policy_ids]

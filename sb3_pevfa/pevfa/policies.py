@@ -312,4 +312,3 @@ class PeVFAMultiInputActorCriticPolicy(PeVFAActorCriticPolicy):
 
     def __init__(self, *args: Any, features_extractor_class: type = CombinedExtractor, **kwargs: Any):
         super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
-
