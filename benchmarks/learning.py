@@ -1,8 +1,8 @@
-"""Learning benchmark: SB3 PPO vs PPOPeVFA variants through rl-zoo3, at identical PPO hyperparameters.
+"""Learning benchmark: SB3 PPO (A2C) vs PPOPeVFA (A2CPeVFA) variants through rl-zoo3, at identical hyperparameters.
 
-Every (env, variant, seed) is one rl-zoo3 training (``python -m sb3_pevfa.train --algo ppo|ppo_pevfa``) reading the
-same config file (``benchmarks/hyperparams/learning.yml``: SB3's PPO defaults); PeVFA variants add only their PeVFA
-options (``--hyperparams``). rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes``
+Every (env, variant, seed) is one rl-zoo3 training (``python -m sb3_pevfa.train --algo ppo|ppo_pevfa|a2c|a2c_pevfa``)
+reading the same config file per base algorithm (``benchmarks/hyperparams/learning.yml``: SB3's PPO defaults;
+``learning_a2c.yml``: SB3's A2C defaults); PeVFA variants add only their PeVFA options (``--hyperparams``). rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes``
 deterministic episodes); its ``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses
 at most the runs in flight, and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread
 each.
@@ -13,6 +13,9 @@ each.
     python benchmarks/learning.py --paper
     # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
     python benchmarks/learning.py --report --plot docs/results/learning.png
+    # A2C vs A2CPeVFA (SB3's A2C defaults), Hopper-v5, 100k steps, 5 seeds
+    python benchmarks/learning.py --env Hopper-v5 --variants a2c a2c-pevfa-opr --timesteps 100000 --eval-freq 10000 \
+        --out docs/results/learning_a2c --baseline a2c --plot docs/results/learning_a2c.png
 """
 
 import argparse
@@ -27,9 +30,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-CONF = pathlib.Path(__file__).parent / "hyperparams" / "learning.yml"
+#: The shared hyperparameters of each base algorithm (``--conf`` replaces them).
+CONFS = {
+    "ppo": pathlib.Path(__file__).parent / "hyperparams" / "learning.yml",
+    "a2c": pathlib.Path(__file__).parent / "hyperparams" / "learning_a2c.yml",
+}
 
 #: PeVFA options of each variant (rl-zoo3 ``--hyperparams``); "ppo" is SB3's PPO. "pevfa-opr" is PPOPeVFA's defaults.
+#: Variants named "a2c..." train A2C / A2CPeVFA instead.
 VARIANTS: dict[str, dict | None] = {
     "ppo": None,
     "pevfa-none": dict(representation="none"),
@@ -42,6 +50,8 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-paper": dict(
         update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
     ),
+    "a2c": None,
+    "a2c-pevfa-opr": {},
 }
 
 #: The paper's Table 1 protocol, in today's task versions: task -> steps (10 seeds, every variant).
@@ -60,12 +70,21 @@ def run_name(env_id: str, variant: str, seed: int) -> str:
     return f"{env_id}_{variant}_seed{seed}"
 
 
+def base_algorithm(variant: str) -> str:
+    return "a2c" if variant.startswith("a2c") else "ppo"
+
+
+def conf_file(variant: str, args: argparse.Namespace) -> pathlib.Path:
+    return args.conf or CONFS[base_algorithm(variant)]
+
+
 def zoo_command(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace, folder: pathlib.Path) -> list:
     options = VARIANTS[variant]
+    base = base_algorithm(variant)
     command = [
         sys.executable, "-m", "sb3_pevfa.train",
-        "--algo", "ppo" if options is None else "ppo_pevfa",
-        "--env", env_id, "--seed", str(seed), "-n", str(timesteps), "-conf", str(args.conf),
+        "--algo", base if options is None else f"{base}_pevfa",
+        "--env", env_id, "--seed", str(seed), "-n", str(timesteps), "-conf", str(conf_file(variant, args)),
         "--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", "1",
         "--num-threads", "1", "-f", str(folder), "--log-interval", "-1",
     ]  # fmt: skip
@@ -96,7 +115,7 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
         "seed": seed,
         "timesteps": timesteps,
         "wall_time_s": wall,
-        "command": " ".join(os.path.relpath(c) if c in (str(args.conf), str(folder)) else c for c in command[1:]),
+        "command": " ".join(os.path.relpath(c) if c in (str(conf_file(variant, args)), str(folder)) else c for c in command[1:]),
         "curve": [
             {"timesteps": int(t), "mean_return": float(r.mean()), "std_return": float(r.std())}
             for t, r in zip(evaluations["timesteps"], returns)
@@ -152,7 +171,7 @@ def report(out: pathlib.Path, baseline: str = "ppo") -> str:
         lines += [
             f"**{env_id}** ({variants[next(iter(variants))][0]['timesteps']:,} steps)",
             "",
-            "| variant | seeds | max avg return (± ½ std) | 95 % CI (bootstrap) | vs PPO | final avg return | "
+            f"| variant | seeds | max avg return (± ½ std) | 95 % CI (bootstrap) | vs {baseline} | final avg return | "
             "area under curve | max per seed | wall time / run |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
@@ -202,7 +221,8 @@ def main() -> None:
     parser.add_argument("--eval-freq", type=int, default=20_000)
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="runs at a time (default: the cores)")
-    parser.add_argument("--conf", type=pathlib.Path, default=CONF, help="rl-zoo3 hyperparameters shared by all variants")
+    parser.add_argument("--conf", type=pathlib.Path, default=None, help="rl-zoo3 hyperparameters shared by all variants")
+    parser.add_argument("--baseline", default="ppo", choices=list(VARIANTS), help="the variant the report compares to")
     parser.add_argument("--paper", action="store_true", help="the paper's protocol: its six tasks, 2M steps, 10 seeds")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
@@ -224,7 +244,7 @@ def main() -> None:
         with ThreadPoolExecutor(args.workers) as pool:  # threads only wait on the training processes
             for message in pool.map(lambda job: run(*job), jobs):
                 print(message, flush=True)
-    print(report(args.out))
+    print(report(args.out, args.baseline))
     if args.plot is not None:
         plot(args.out, args.plot)
 

@@ -147,6 +147,7 @@ class PolicyHistory:
         self._record_info: dict[int, dict[str, int | float]] = {}
         self._sample_counts: dict[int, int] = {}
         self._next_id = 0
+        self._record_nbytes = 0  # kept up to date: summing 10k records at every iteration is not free
 
     @property
     def signature(self) -> dict[str, Any]:
@@ -199,11 +200,13 @@ class PolicyHistory:
         policy_id = self._next_id
         self._next_id += 1
         self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in RECORD_FIELDS}
+        self._record_nbytes += sum(array.nbytes for array in self._policies[policy_id].values())
         self._record_info[policy_id] = dict(info)
         self._sample_counts[policy_id] = 0
         while len(self._policies) > self.max_policies:
             oldest = next(iter(self._policies))
             self._forget_samples(self._samples.drop_front(self._sample_counts[oldest]))
+            self._record_nbytes -= sum(array.nbytes for array in self._policies[oldest].values())
             del self._policies[oldest], self._record_info[oldest], self._sample_counts[oldest]
         return policy_id
 
@@ -289,8 +292,7 @@ class PolicyHistory:
     @property
     def nbytes(self) -> int:
         """Memory held by the history, in bytes."""
-        policies = sum(array.nbytes for record in self._policies.values() for array in record.values())
-        return self._samples.nbytes + policies
+        return self._samples.nbytes + self._record_nbytes
 
     def __len__(self) -> int:
         return self.n_samples

@@ -1,5 +1,6 @@
 """Actor-critic policies whose critic is a PeVFA V(s, chi_pi)."""
 
+import inspect
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -54,7 +55,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
         (see :mod:`sb3_pevfa.pevfa.objectives`)
 
-    Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``.
+    Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``; other torch optimizers
+    that take ``foreach`` (A2C's RMSprop) get ``foreach=True`` unless it is given.
     """
 
     def __init__(
@@ -77,10 +79,16 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
     ):
-        if kwargs.get("optimizer_kwargs") is None and kwargs.get("optimizer_class", th.optim.Adam) is th.optim.Adam:
+        optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
+        if kwargs.get("optimizer_kwargs") is None and optimizer_class is th.optim.Adam:
             # SB3's Adam settings (eps=1e-5) with the fused kernel: one call per step instead of a Python loop over
             # the parameter tensors (the encoder adds many). Pass optimizer_kwargs=dict(eps=1e-5) for SB3's own.
             kwargs["optimizer_kwargs"] = dict(eps=1e-5, fused=True)
+        elif "foreach" in inspect.signature(optimizer_class).parameters and "foreach" not in (
+            kwargs.get("optimizer_kwargs") or {}
+        ):
+            # e.g. A2C's RMSprop: torch's multi-tensor kernels (the same update), not a loop over the tensors on a CPU
+            kwargs["optimizer_kwargs"] = {**(kwargs.get("optimizer_kwargs") or {}), "foreach": True}
         if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
             net_arch = dict(pi=[64, 64], vf=[64])
         if not isinstance(n_state_action_pairs, (int, np.integer)) or n_state_action_pairs < 0:
@@ -296,7 +304,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self._embedding_cache = None
 
     def set_training_mode(self, mode: bool) -> None:
-        super().set_training_mode(mode)
+        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs)."""
+        if mode != self.training:
+            super().set_training_mode(mode)
         self.clear_embedding_cache()
 
 

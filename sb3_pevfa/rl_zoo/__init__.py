@@ -1,35 +1,42 @@
-"""rl-zoo3 integration: ``ppo_pevfa`` in rl-zoo3's tables without a fork (see :func:`register`)."""
+"""rl-zoo3 integration: ``ppo_pevfa`` and ``a2c_pevfa`` in rl-zoo3's tables without a fork (see :func:`register`)."""
 
 import argparse
 import pathlib
 import sys
 from collections.abc import Callable
 
+from sb3_pevfa.a2c_pevfa import A2CPeVFA
 from sb3_pevfa.ppo_pevfa import PPOPeVFA
 
-#: The shipped hyperparameters (installed with the package).
-HYPERPARAMS_PATH = pathlib.Path(__file__).resolve().parent.parent / "hyperparams" / "ppo_pevfa.yml"
 ALGO_NAME = "ppo_pevfa"
+#: The PeVFA algorithms under their rl-zoo3 names.
+ALGORITHMS = {ALGO_NAME: PPOPeVFA, "a2c_pevfa": A2CPeVFA}
+#: The shipped hyperparameters of each algorithm (installed with the package).
+HYPERPARAMS_PATHS = {
+    name: pathlib.Path(__file__).resolve().parent.parent / "hyperparams" / f"{name}.yml" for name in ALGORITHMS
+}
+HYPERPARAMS_PATH = HYPERPARAMS_PATHS[ALGO_NAME]
 
 
 def register() -> None:
-    """Add ``ppo_pevfa`` to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), Optuna sampler table and trial
+    """Add ``ppo_pevfa`` and ``a2c_pevfa`` to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), Optuna sampler table and trial
     converter table (``rl_zoo3.hyperparams_opt``). These module-level dicts are shared by ``train``, ``enjoy``,
     ``record_video`` and the experiment manager, so one call is enough; calling it again changes nothing."""
     from rl_zoo3 import hyperparams_opt, utils
 
-    from sb3_pevfa.rl_zoo.hyperparams_opt import convert_ppo_pevfa_params, sample_ppo_pevfa_params
+    from sb3_pevfa.rl_zoo.hyperparams_opt import CONVERTERS, SAMPLERS
 
-    utils.ALGOS[ALGO_NAME] = PPOPeVFA
-    hyperparams_opt.HYPERPARAMS_SAMPLER[ALGO_NAME] = sample_ppo_pevfa_params
-    hyperparams_opt.HYPERPARAMS_CONVERTER[ALGO_NAME] = convert_ppo_pevfa_params
+    for name, algorithm in ALGORITHMS.items():
+        utils.ALGOS[name] = algorithm
+        hyperparams_opt.HYPERPARAMS_SAMPLER[name] = SAMPLERS[name]
+        hyperparams_opt.HYPERPARAMS_CONVERTER[name] = CONVERTERS[name]
 
 
 def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, default_config: bool = False) -> None:
     """Run an rl-zoo3 command-line function with ``ppo_pevfa`` registered and rl-zoo3's flags unchanged.
 
     :param default_config: Add ``--conf-file`` pointing at the shipped hyperparameters when ``--algo ppo_pevfa``
-        is trained without one (a user's ``--conf-file`` wins)
+        or ``a2c_pevfa`` is trained without one (a user's ``--conf-file`` wins)
     """
     from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE
 
@@ -43,7 +50,7 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
         index = args.index("--search-space")
         del args[index : index + 2]
     SEARCH_SPACE["name"] = ours.search_space
-    if default_config and ours.algo == ALGO_NAME and not {"--conf-file", "-conf"} & set(args):
-        args += ["--conf-file", str(HYPERPARAMS_PATH)]
+    if default_config and ours.algo in HYPERPARAMS_PATHS and not {"--conf-file", "-conf"} & set(args):
+        args += ["--conf-file", str(HYPERPARAMS_PATHS[ours.algo])]
     sys.argv = [sys.argv[0], *args]
     script()

@@ -1,9 +1,10 @@
-"""Optuna sampler and trial converter of ``ppo_pevfa`` for rl-zoo3: PPO's parameters plus PeVFA's."""
+"""Optuna samplers and trial converters of ``ppo_pevfa`` and ``a2c_pevfa`` for rl-zoo3: the base algorithm's
+parameters (rl-zoo3's own space) plus PeVFA's."""
 
 from typing import Any
 
 import optuna
-from rl_zoo3.hyperparams_opt import convert_onpolicy_params, sample_ppo_params
+from rl_zoo3.hyperparams_opt import convert_onpolicy_params, sample_a2c_params, sample_ppo_params
 
 #: Raw (trial) parameters that belong to PeVFA; the rest are rl-zoo3's PPO parameters.
 PEVFA_PARAMS = (
@@ -45,7 +46,8 @@ def _with_fixed_params(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def convert_ppo_pevfa_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
-    """Converter of ``ppo_pevfa`` (``HYPERPARAMS_CONVERTER``): used by ``--trial-id`` to rebuild a trial."""
+    """Converter of ``ppo_pevfa`` and ``a2c_pevfa`` (``HYPERPARAMS_CONVERTER``): used by ``--trial-id`` to rebuild a
+    trial."""
     ppo = {key: value for key, value in sampled_params.items() if key not in PEVFA_PARAMS}
     pevfa = {key: value for key, value in sampled_params.items() if key in PEVFA_PARAMS}
     return _with_fixed_params({**convert_onpolicy_params(ppo), **convert_pevfa_params(pevfa)})
@@ -69,11 +71,8 @@ def _sample_small_ppo_params(trial: optuna.Trial) -> dict[str, Any]:
     return convert_onpolicy_params(sampled)
 
 
-def sample_ppo_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-    """Sampler of ``ppo_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's PPO space plus representation, objectives,
-    embedding size, history size and update frequency, and critic learning rate."""
-    small = SEARCH_SPACE["name"] == "small"
-    ppo = _sample_small_ppo_params(trial) if small else sample_ppo_params(trial, n_actions, n_envs, additional_args)
+def _sample_pevfa_params(trial: optuna.Trial, small: bool) -> dict[str, Any]:
+    """Representation, objectives, embedding size, history size and update frequency, and critic learning rate."""
     representation = trial.suggest_categorical("representation", ["opr", "spr"] if small else ["opr", "spr", "none"])
     sampled: dict[str, Any] = {"representation": representation}
     if representation != "none":
@@ -86,4 +85,23 @@ def sample_ppo_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, ad
     )
     sampled["history_train_freq"] = trial.suggest_categorical("history_train_freq", [5, 10, 20, 50])
     sampled["critic_learning_rate"] = trial.suggest_float("critic_learning_rate", 1e-5, 3e-3, log=True)
-    return _with_fixed_params({**ppo, **convert_pevfa_params(sampled)})
+    return convert_pevfa_params(sampled)
+
+
+def sample_ppo_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Sampler of ``ppo_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's PPO space plus PeVFA's."""
+    small = SEARCH_SPACE["name"] == "small"
+    ppo = _sample_small_ppo_params(trial) if small else sample_ppo_params(trial, n_actions, n_envs, additional_args)
+    return _with_fixed_params({**ppo, **_sample_pevfa_params(trial, small)})
+
+
+def sample_a2c_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Sampler of ``a2c_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's A2C space plus PeVFA's."""
+    small = SEARCH_SPACE["name"] == "small"
+    a2c = sample_a2c_params(trial, n_actions, n_envs, additional_args)
+    return _with_fixed_params({**a2c, **_sample_pevfa_params(trial, small)})
+
+
+#: Sampler and converter of each PeVFA algorithm, by rl-zoo3 name.
+SAMPLERS = {"ppo_pevfa": sample_ppo_pevfa_params, "a2c_pevfa": sample_a2c_pevfa_params}
+CONVERTERS = {"ppo_pevfa": convert_ppo_pevfa_params, "a2c_pevfa": convert_ppo_pevfa_params}
