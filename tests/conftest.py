@@ -42,3 +42,26 @@ def actor_parameters(policy) -> th.Tensor:
 
 def module_parameters(module) -> th.Tensor:
     return th.cat([p.detach().flatten().clone() for p in module.parameters()])
+
+
+#: PeVFA options under which a PeVFA algorithm is its SB3 base: no representation, no history, SB3's critic shape
+AS_SB3 = dict(representation="none", history_train_freq=0, n_state_action_pairs=0)
+
+
+def sb3_twin_runs(sb3_model, pevfa_model, timesteps: int) -> None:
+    """Give the PeVFA model the SB3 model's weights, train both from the same global seeds, and check that they end
+    with the same weights (SB3's ``value_net`` is the PeVFA head's ``output``)."""
+
+    def renamed(key: str) -> str:
+        return key.replace("value_net.", "value_net.output.", 1) if key.startswith("value_net.") else key
+
+    weights = {renamed(k): v for k, v in sb3_model.policy.state_dict().items()}
+    missing, unexpected = pevfa_model.policy.load_state_dict(weights, strict=False)
+    assert not unexpected and all(k.startswith("behaviour") or k == "has_behaviour" for k in missing)
+    for model in (sb3_model, pevfa_model):
+        th.manual_seed(1)
+        np.random.seed(1)
+        model.learn(timesteps)
+    assert pevfa_model._n_updates == sb3_model._n_updates
+    for name, value in sb3_model.policy.state_dict().items():
+        np.testing.assert_allclose(pevfa_model.policy.state_dict()[renamed(name)].numpy(), value.numpy(), atol=1e-5)

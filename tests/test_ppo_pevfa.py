@@ -2,14 +2,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import FAST, DictPendulum, actor_parameters, module_parameters, read_progress
+from conftest import AS_SB3, FAST, DictPendulum, actor_parameters, module_parameters, read_progress, sb3_twin_runs
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PPOPeVFA
+from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa.buffers import PeVFARolloutBuffer
 from sb3_pevfa.pevfa.fast_path import flat_observations
 from sb3_pevfa.pevfa.records import ActorLayout
@@ -347,19 +347,58 @@ def test_without_representation_and_history_it_is_sb3_ppo(env_id):
     """No representation, no historical updates, SB3's critic shape: PPOPeVFA trains exactly as SB3's PPO."""
     common = dict(n_steps=64, batch_size=32, n_epochs=3, seed=0, policy_kwargs=dict(net_arch=dict(pi=[32, 32], vf=[32, 32])))
     ppo = PPO("MlpPolicy", env_id, **common)
-    pevfa_kwargs = dict(representation="none", history_train_freq=0, n_state_action_pairs=0)
-    pevfa_kwargs["policy_kwargs"] = {**common["policy_kwargs"], "critic_head_arch": []}
-    pevfa = PPOPeVFA("MlpPolicy", env_id, **{**common, **pevfa_kwargs})
+    policy_kwargs = {**common["policy_kwargs"], "critic_head_arch": []}
+    sb3_twin_runs(ppo, PPOPeVFA("MlpPolicy", env_id, **{**common, **AS_SB3, "policy_kwargs": policy_kwargs}), 192)
 
-    def renamed(key: str) -> str:
-        return key.replace("value_net.", "value_net.output.", 1) if key.startswith("value_net.") else key
 
-    weights = {renamed(k): v for k, v in ppo.policy.state_dict().items()}
-    missing, unexpected = pevfa.policy.load_state_dict(weights, strict=False)
-    assert not unexpected and all(k.startswith("behaviour") or k == "has_behaviour" for k in missing)
-    for model in (ppo, pevfa):
-        th.manual_seed(1)
-        np.random.seed(1)
-        model.learn(192)
-    for name, value in ppo.policy.state_dict().items():
-        np.testing.assert_allclose(pevfa.policy.state_dict()[renamed(name)].numpy(), value.numpy(), atol=1e-5)
+def test_the_critic_reads_chi_from_its_arguments():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    model.learn(128)
+    policy, history = model.policy, model.history
+    policy.set_training_mode(False)
+    obs = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(6)]))
+    records = PolicyRecord.from_numpy(history.records(history.policy_ids))
+    chi = policy.embed(records)
+    with th.no_grad():
+        # the default chi is the behaviour policy's: the latest record, after learn() the trained policy
+        np.testing.assert_allclose(policy.predict_values(obs), policy.predict_values(obs, chi[-1:]), rtol=1e-6)
+        first, last = policy.predict_values(obs, chi[:1]), policy.predict_values(obs, chi[-1:])
+        assert not th.allclose(first, last)  # V depends on which policy chi describes
+        per_row = policy.predict_values(obs[:2], chi[[0, -1]])  # one chi per observation
+        np.testing.assert_allclose(per_row.flatten(), [first[0, 0], last[1, 0]], rtol=1e-6)
+        actions, values, _ = policy(obs, deterministic=True, chi=chi[:1])
+        np.testing.assert_allclose(values, first, rtol=1e-6)
+        values, _, _ = policy.evaluate_actions(obs, actions, chi=chi[:1])
+        np.testing.assert_allclose(values, first, rtol=1e-6)
+
+
+def test_policy_pickles_copies_and_deepcopies_like_sb3():
+    import copy
+    import pickle
+
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order="critic_first", **FAST)
+    model.learn(128)
+    obs = th.zeros(3, 3)
+    policy = model.policy
+    policy.set_training_mode(False)
+    expected = policy.predict_values(obs).detach()
+    for clone in (pickle.loads(pickle.dumps(policy)), copy.deepcopy(policy)):
+        clone.set_training_mode(False)
+        np.testing.assert_array_equal(clone.predict_values(obs).detach(), expected)
+        # a copy's frozen critic is its own
+        with clone.critic_frozen():
+            assert not clone.critic_trainable and policy.critic_trainable
+    shallow = copy.copy(policy)
+    np.testing.assert_array_equal(shallow.predict_values(obs).detach(), expected)
+
+
+def test_a_second_history_callback_does_not_touch_the_behaviour_record():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
+    extra = PolicyHistoryCallback(n_state_action_pairs=200)
+    model.learn(128, callback=extra)
+    # the callback keeps its own history of the same policies (its own probe states); the critic's record is the model's
+    assert extra.history.n_policies == model.history.n_policies == 3
+    ours, theirs = (h.records([h.latest_policy_id]) for h in (model.history, extra.history))
+    np.testing.assert_array_equal(ours["params"], theirs["params"])
+    np.testing.assert_array_equal(model.policy.behaviour_states.numpy(), ours["states"][0])
+    assert not np.array_equal(ours["states"], theirs["states"])

@@ -12,9 +12,9 @@ import optuna
 import pytest
 import yaml
 
-from sb3_pevfa import PPOPeVFA
+from sb3_pevfa import A2CPeVFA, PPOPeVFA
 from sb3_pevfa.pevfa.history import PolicyHistory
-from sb3_pevfa.rl_zoo import ALGO_NAME, HYPERPARAMS_PATH, register
+from sb3_pevfa.rl_zoo import ALGO_NAME, ALGORITHMS, HYPERPARAMS_PATH, HYPERPARAMS_PATHS, register
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -36,18 +36,21 @@ def test_register_is_idempotent_and_fills_the_three_tables():
 
     register()
     register()
-    assert utils.ALGOS[ALGO_NAME] is PPOPeVFA and ALGOS is utils.ALGOS
-    assert ALGO_NAME in hyperparams_opt.HYPERPARAMS_SAMPLER and ALGO_NAME in hyperparams_opt.HYPERPARAMS_CONVERTER
-    assert list(utils.ALGOS).count(ALGO_NAME) == 1
+    assert utils.ALGOS[ALGO_NAME] is PPOPeVFA and utils.ALGOS["a2c_pevfa"] is A2CPeVFA and ALGOS is utils.ALGOS
+    for name in ALGORITHMS:
+        assert name in hyperparams_opt.HYPERPARAMS_SAMPLER and name in hyperparams_opt.HYPERPARAMS_CONVERTER
+        assert list(utils.ALGOS).count(name) == 1
 
 
-def test_shipped_hyperparameters():
+@pytest.mark.parametrize("algo", sorted(ALGORITHMS))
+def test_shipped_hyperparameters(algo):
     import sb3_pevfa
 
+    path = HYPERPARAMS_PATHS[algo]
     # inside the package (installed with it: package_data), and linked from the checkout's hyperparams/
-    assert HYPERPARAMS_PATH.is_file() and HYPERPARAMS_PATH.parent.parent == pathlib.Path(sb3_pevfa.__file__).resolve().parent
-    assert (ROOT / "hyperparams" / "ppo_pevfa.yml").read_text() == HYPERPARAMS_PATH.read_text()
-    config = yaml.safe_load(HYPERPARAMS_PATH.read_text())
+    assert path.is_file() and path.parent.parent == pathlib.Path(sb3_pevfa.__file__).resolve().parent
+    assert (ROOT / "hyperparams" / f"{algo}.yml").read_text() == path.read_text()
+    config = yaml.safe_load(path.read_text())
     tasks = ["Hopper", "HalfCheetah", "Walker2d", "Ant", "InvertedPendulum", "InvertedDoublePendulum", "Swimmer", "Humanoid"]
     expected = {f"{task}-v5" for task in tasks} | {
         "CartPole-v1",
@@ -57,11 +60,12 @@ def test_shipped_hyperparameters():
         "LunarLander-v3",
     }
     assert expected <= set(config)
-    zoo_ppo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / "ppo.yml").read_text())
+    base = algo.removesuffix("_pevfa")
+    zoo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / f"{base}.yml").read_text())
     for env_id, params in config.items():
         assert params["representation"] == "opr"
-        source = zoo_ppo.get(env_id, zoo_ppo.get(env_id.replace("-v5", "-v4")))
-        if source is not None:  # the PPO part is rl-zoo3's, unchanged
+        source = zoo.get(env_id, zoo.get(env_id.replace("-v5", "-v4")))
+        if source is not None:  # the PPO / A2C part is rl-zoo3's, unchanged
             assert {k: v for k, v in params.items() if k not in ("representation", "embedding_dim")} == {
                 **source,
                 "n_timesteps": float(source["n_timesteps"]),
@@ -98,6 +102,17 @@ def test_zoo_train_enjoy_and_continue_with_history(zoo_run):
     assert set(first.history.policy_ids) < set(second.history.policy_ids)
     assert second.history.n_samples == first.history.n_samples + 256
     assert second.history.record_info(0)["num_timesteps"] == 0
+
+
+def test_zoo_trains_a2c_pevfa_with_its_shipped_hyperparameters(tmp_path):
+    log = _run("-m", "sb3_pevfa.train", "--algo", "a2c_pevfa", "--env", "CartPole-v1", "-n", "400", "-f", str(tmp_path),
+               "--seed", "0", "--save-replay-buffer", "--eval-freq", "-1", cwd=tmp_path)  # fmt: skip
+    assert "Loading hyperparameters from: " + str(HYPERPARAMS_PATHS["a2c_pevfa"]) in log
+    run = tmp_path / "a2c_pevfa" / "CartPole-v1_1"
+    model = A2CPeVFA.load(run / "CartPole-v1.zip")
+    model.load_history(run / "replay_buffer.pkl")
+    # rl-zoo3's CartPole entry: 8 envs x 5 steps per update, 10 updates and the final policy
+    assert model.n_envs == 8 and model.history.n_samples == 400 and model.history.n_policies == 11
 
 
 def test_zoo_record_video(zoo_run):
@@ -229,19 +244,21 @@ def test_history_file_keeps_the_zoo_name(tmp_path):
     assert (tmp_path / "replay_buffer.pkl").exists() and not (tmp_path / "replay_buffer.pkl.npz").exists()
 
 
+@pytest.mark.parametrize("algo", sorted(ALGORITHMS))
 @pytest.mark.parametrize("space", ["full", "small"])
-def test_sampler_and_converter_agree(space):
+def test_sampler_and_converter_agree(space, algo):
     """What a trial trains with (sampler) is what --trial-id rebuilds from its stored parameters (converter)."""
-    from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE, convert_ppo_pevfa_params, sample_ppo_pevfa_params
+    from sb3_pevfa.rl_zoo.hyperparams_opt import CONVERTERS, SAMPLERS, SEARCH_SPACE
 
     SEARCH_SPACE["name"] = space
     try:
         study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
         for _ in range(20):
             trial = study.ask()
-            sampled = sample_ppo_pevfa_params(trial, 1, 1, {})
-            assert convert_ppo_pevfa_params(trial.params) == sampled
-            model = PPOPeVFA("MlpPolicy", "CartPole-v1", **{k: v for k, v in sampled.items() if k != "n_steps"}, n_steps=64)
+            sampled = SAMPLERS[algo](trial, 1, 1, {})
+            assert CONVERTERS[algo](trial.params) == sampled
+            kwargs = {k: v for k, v in sampled.items() if k != "n_steps"}
+            model = ALGORITHMS[algo]("MlpPolicy", "CartPole-v1", **kwargs, n_steps=64)
             assert model.policy.representation_name == sampled["representation"]
             study.tell(trial, 0.0)
     finally:

@@ -1,13 +1,5 @@
 """The policies of A2CPeVFA (SB3's names for the PeVFA actor-critic policies)."""
 
-from sb3_pevfa.pevfa.policies import (
-    PeVFAActorCriticCnnPolicy,
-    PeVFAActorCriticPolicy,
-    PeVFAMultiInputActorCriticPolicy,
-)
-
-MlpPolicy = PeVFAActorCriticPolicy
-CnnPolicy = PeVFAActorCriticCnnPolicy
-MultiInputPolicy = PeVFAMultiInputActorCriticPolicy
+from sb3_pevfa.pevfa.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, PeVFAActorCriticPolicy
 
 __all__ = ["CnnPolicy", "MlpPolicy", "MultiInputPolicy", "PeVFAActorCriticPolicy"]

@@ -322,3 +322,9 @@ class PeVFAMultiInputActorCriticPolicy(PeVFAActorCriticPolicy):
 
     def __init__(self, *args: Any, features_extractor_class: type = CombinedExtractor, **kwargs: Any):
         super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+#: SB3's names, which every PeVFA algorithm's ``policy_aliases`` maps
+MlpPolicy = PeVFAActorCriticPolicy
+CnnPolicy = PeVFAActorCriticCnnPolicy
+MultiInputPolicy = PeVFAMultiInputActorCriticPolicy

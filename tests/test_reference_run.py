@@ -1,0 +1,66 @@
+"""Fixed-seed numbers of short runs, recorded on the code before the redesign into sb3_pevfa/pevfa (commit 72a1f32),
+must come out again: the redesign kept behaviour.
+
+``tests/data/reference_run.json`` holds, per configuration and code path, sums of the final actor and critic
+parameters and of the history's targets and observations. SB3's path (``fast_path=False``) reproduced them bit for
+bit; the fast path within 2e-8 (relative): Gaussian actions are now drawn by torch.distributions instead of the
+same formula written out, which rounds differently. The tolerance leaves room for other CPUs' round-off only.
+"""
+
+import json
+import pathlib
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_pevfa import PPOPeVFA
+
+REFERENCE = json.loads((pathlib.Path(__file__).parent / "data" / "reference_run.json").read_text())
+
+CONFIGS = {
+    "opr_joint": dict(env="Pendulum-v1"),
+    "paper": dict(
+        env="Pendulum-v1", update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
+    ),
+    "spr_cl_aux": dict(
+        env="CartPole-v1",
+        representation="spr",
+        representation_objectives=("cl", "aux"),
+        objective_kwargs={"cl": dict(learning_starts=0, train_freq=64), "aux": dict(learning_starts=0, train_freq=64)},
+    ),
+}
+
+
+def reference_numbers(name: str, fast_path: bool) -> dict[str, float]:
+    config = dict(CONFIGS[name])
+    env = make_vec_env(config.pop("env"), n_envs=2, seed=0)
+    model = PPOPeVFA("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=2, history_learning_starts=0,
+                     history_train_freq=16, seed=0, fast_path=fast_path, **config)  # fmt: skip
+    model.learn(4 * 128)
+    policy = model.policy
+    critic_ids = {id(p) for p in policy.critic_parameters()}
+    actor = policy.layout.flatten(policy).double()
+    critic = th.cat([p.detach().flatten().double() for p in policy.parameters() if id(p) in critic_ids])
+    obs, targets, _ = model.history.samples()
+    return {
+        "actor_sum": actor.sum().item(),
+        "actor_abs_sum": actor.abs().sum().item(),
+        "critic_sum": critic.sum().item(),
+        "critic_abs_sum": critic.abs().sum().item(),
+        "targets_sum": float(np.asarray(targets, np.float64).sum()),
+        "obs_abs_sum": float(np.abs(np.asarray(obs, np.float64)).sum()),
+        "n_policies": model.history.n_policies,
+        "n_samples": model.history.n_samples,
+    }
+
+
+@pytest.mark.parametrize("fast_path", [True, False], ids=["fast", "sb3"])
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_reproduces_the_numbers_recorded_before_the_redesign(name, fast_path):
+    expected = REFERENCE[f"{name}/{'fast' if fast_path else 'sb3'}"]
+    got = reference_numbers(name, fast_path)
+    assert got["n_policies"] == expected["n_policies"] and got["n_samples"] == expected["n_samples"]
+    for key in expected:
+        assert got[key] == pytest.approx(expected[key], rel=1e-5), key
