@@ -2,10 +2,10 @@
 
 Every (env, variant, seed) is one rl-zoo3 training (``python -m sb3_pevfa.train --algo ppo|ppo_pevfa|a2c|a2c_pevfa``)
 reading the same config file per base algorithm (``benchmarks/hyperparams/learning.yml``: SB3's PPO defaults;
-``learning_a2c.yml``: SB3's A2C defaults); PeVFA variants add only their PeVFA options (``--hyperparams``). rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes``
-deterministic episodes); its ``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses
-at most the runs in flight, and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread
-each.
+``learning_a2c.yml``: SB3's A2C defaults); PeVFA variants add only their PeVFA options (``--hyperparams``).
+rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes`` deterministic episodes); its
+``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses at most the runs in flight,
+and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread each.
 
     # this machine's budget (docs/benchmarks.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4
@@ -99,6 +99,7 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
     folder = args.out / "runs" / name
     shutil.rmtree(folder, ignore_errors=True)  # a half-finished earlier attempt
     command = zoo_command(env_id, variant, seed, timesteps, args, folder)
+    conf = conf_file(variant, args)
     start = time.perf_counter()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     process = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -115,7 +116,7 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
         "seed": seed,
         "timesteps": timesteps,
         "wall_time_s": wall,
-        "command": " ".join(os.path.relpath(c) if c in (str(conf_file(variant, args)), str(folder)) else c for c in command[1:]),
+        "command": " ".join(os.path.relpath(c) if c in (str(conf), str(folder)) else c for c in command[1:]),
         "curve": [
             {"timesteps": int(t), "mean_return": float(r.mean()), "std_return": float(r.std())}
             for t, r in zip(evaluations["timesteps"], returns)

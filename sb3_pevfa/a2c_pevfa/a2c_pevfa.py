@@ -9,12 +9,8 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
 from sb3_pevfa.a2c_pevfa.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, PeVFAActorCriticPolicy
-from sb3_pevfa.pevfa.algorithm import (
-    PEVFA_ARGUMENTS,
-    PeVFAAlgorithm,
-    action_space_errors_as_type_errors,
-    pevfa_policy_kwargs,
-)
+from sb3_pevfa.pevfa.algorithm import PeVFAAlgorithm
+from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, action_space_errors_as_type_errors, pevfa_policy_kwargs
 
 
 class A2CPeVFA(PeVFAAlgorithm, A2C):

@@ -17,8 +17,6 @@ One iteration, as :meth:`PeVFAAlgorithm.train` reads:
 
 import io
 import pathlib
-from collections.abc import Generator
-from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import numpy as np
@@ -34,74 +32,14 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import fast_path
+from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord
-from sb3_pevfa.pevfa.representations import REPRESENTATIONS
 
 SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
-
-#: Valid values of ``update_order``.
-UPDATE_ORDERS = ("joint", "critic_first")
-#: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
-PEVFA_ARGUMENTS = (
-    "representation",
-    "embedding_dim",
-    "representation_kwargs",
-    "n_state_action_pairs",
-    "representation_objectives",
-    "objective_kwargs",
-    "critic_learning_rate",
-    "update_order",
-    "value_target_lambda",
-    "history_buffer_size",
-    "history_max_policies",
-    "history_batch_size",
-    "history_train_freq",
-    "history_learning_starts",
-    "fast_path",
-)
-#: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
-_POLICY_ARGUMENTS = PEVFA_ARGUMENTS[:6]
-_SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
-
-
-def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
-    """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice)."""
-    ours = {name: arguments[name] for name in _POLICY_ARGUMENTS}
-    ours["representation_objectives"] = tuple(
-        [ours["representation_objectives"]]
-        if isinstance(ours["representation_objectives"], str)
-        else ours["representation_objectives"]
-    )
-    policy_kwargs = dict(policy_kwargs or {})
-    clash = sorted(set(policy_kwargs) & set(ours))
-    if clash:
-        raise ValueError(f"Pass {clash} as arguments of the algorithm, not in policy_kwargs")
-    return {**policy_kwargs, **ours}
-
-
-@contextmanager
-def action_space_errors_as_type_errors() -> Generator[None, None, None]:
-    """SB3 asserts on unsupported action spaces: raise a precise TypeError instead."""
-    try:
-        yield
-    except AssertionError as error:
-        if "action spaces" in str(error):
-            raise TypeError(str(error)) from error
-        raise
-
-
-def check_observation_space(observation_space: spaces.Space, algorithm: str) -> None:
-    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
-    for space in subspaces:
-        if not isinstance(space, _SUPPORTED_OBSERVATION_SPACES):
-            raise TypeError(
-                f"{algorithm} supports observation spaces {[s.__name__ for s in _SUPPORTED_OBSERVATION_SPACES]} "
-                f"and Dict of them, got {observation_space}"
-            )
 
 
 class PeVFAAlgorithm(OnPolicyAlgorithm):
@@ -115,6 +53,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
 
     def _init_pevfa(self, env: Any, arguments: dict[str, Any]) -> None:
         """Keep and validate the PeVFA arguments (after the base constructor, before ``_setup_model``)."""
+        validate_arguments(arguments)
         if self.env is not None:
             check_observation_space(self.observation_space, type(self).__name__)
         # Kept so that a model loaded without an env (env=None) can still learn on: see learn()
@@ -126,36 +65,6 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._history_credit = 0
         self._objective_credit: dict[str, int] = {}
         self._rollout_episode_returns: list[float] = []
-        self._validate_pevfa_arguments(arguments["n_state_action_pairs"])
-
-    def _validate_pevfa_arguments(self, n_state_action_pairs: int) -> None:
-        if self.representation not in REPRESENTATIONS:
-            raise ValueError(f"Unknown representation {self.representation!r}, valid choices: {REPRESENTATIONS}")
-        if self.update_order not in UPDATE_ORDERS:
-            raise ValueError(f"Unknown update_order {self.update_order!r}, valid choices: {UPDATE_ORDERS}")
-        positive = {
-            "embedding_dim": self.embedding_dim,
-            "history_buffer_size": self.history_buffer_size,
-            "history_max_policies": self.history_max_policies,
-            "history_batch_size": self.history_batch_size,
-        }
-        non_negative = {
-            "history_train_freq": self.history_train_freq,
-            "history_learning_starts": self.history_learning_starts,
-            "n_state_action_pairs": n_state_action_pairs,
-        }
-        for name, value in positive.items():
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        for name, value in non_negative.items():
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {value!r}")
-        lr = self.critic_learning_rate
-        if lr is not None and not callable(lr) and (not isinstance(lr, (int, float)) or not np.isfinite(lr) or lr <= 0):
-            raise ValueError(f"critic_learning_rate must be a positive finite float, a schedule or None, got {lr!r}")
-        lam = self.value_target_lambda
-        if lam is not None and (not isinstance(lam, (int, float)) or not 0.0 <= lam <= 1.0):
-            raise ValueError(f"value_target_lambda must be in [0, 1] or None, got {lam!r}")
 
     def _setup_model(self) -> None:
         if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):

@@ -19,8 +19,8 @@ HYPERPARAMS_PATH = HYPERPARAMS_PATHS[ALGO_NAME]
 
 
 def register() -> None:
-    """Add ``ppo_pevfa`` and ``a2c_pevfa`` to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), Optuna sampler table and trial
-    converter table (``rl_zoo3.hyperparams_opt``). These module-level dicts are shared by ``train``, ``enjoy``,
+    """Add ``ppo_pevfa`` and ``a2c_pevfa`` to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), Optuna sampler
+    table and trial converter table (``rl_zoo3.hyperparams_opt``). These module-level dicts are shared by ``train``, ``enjoy``,
     ``record_video`` and the experiment manager, so one call is enough; calling it again changes nothing."""
     from rl_zoo3 import hyperparams_opt, utils
 

@@ -1,0 +1,96 @@
+"""The PeVFA arguments that every PeVFA algorithm's constructor takes: their names, and their checks."""
+
+from collections.abc import Generator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from sb3_pevfa.pevfa.representations import REPRESENTATIONS
+
+#: Valid values of ``update_order``.
+UPDATE_ORDERS = ("joint", "critic_first")
+#: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
+PEVFA_ARGUMENTS = (
+    "representation",
+    "embedding_dim",
+    "representation_kwargs",
+    "n_state_action_pairs",
+    "representation_objectives",
+    "objective_kwargs",
+    "critic_learning_rate",
+    "update_order",
+    "value_target_lambda",
+    "history_buffer_size",
+    "history_max_policies",
+    "history_batch_size",
+    "history_train_freq",
+    "history_learning_starts",
+    "fast_path",
+)
+#: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
+_POLICY_ARGUMENTS = PEVFA_ARGUMENTS[:6]
+_SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+
+
+def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
+    """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice)."""
+    ours = {name: arguments[name] for name in _POLICY_ARGUMENTS}
+    ours["representation_objectives"] = tuple(
+        [ours["representation_objectives"]]
+        if isinstance(ours["representation_objectives"], str)
+        else ours["representation_objectives"]
+    )
+    policy_kwargs = dict(policy_kwargs or {})
+    clash = sorted(set(policy_kwargs) & set(ours))
+    if clash:
+        raise ValueError(f"Pass {clash} as arguments of the algorithm, not in policy_kwargs")
+    return {**policy_kwargs, **ours}
+
+
+@contextmanager
+def action_space_errors_as_type_errors() -> Generator[None, None, None]:
+    """SB3 asserts on unsupported action spaces: raise a precise TypeError instead."""
+    try:
+        yield
+    except AssertionError as error:
+        if "action spaces" in str(error):
+            raise TypeError(str(error)) from error
+        raise
+
+
+def check_observation_space(observation_space: spaces.Space, algorithm: str) -> None:
+    subspaces = observation_space.spaces.values() if isinstance(observation_space, spaces.Dict) else [observation_space]
+    for space in subspaces:
+        if not isinstance(space, _SUPPORTED_OBSERVATION_SPACES):
+            raise TypeError(
+                f"{algorithm} supports observation spaces {[s.__name__ for s in _SUPPORTED_OBSERVATION_SPACES]} "
+                f"and Dict of them, got {observation_space}"
+            )
+
+
+def validate_arguments(arguments: dict[str, Any]) -> None:
+    """Check the PeVFA arguments of an algorithm's constructor: a ValueError names the argument and what is valid."""
+    representation, update_order = arguments["representation"], arguments["update_order"]
+    if representation not in REPRESENTATIONS:
+        raise ValueError(f"Unknown representation {representation!r}, valid choices: {REPRESENTATIONS}")
+    if update_order not in UPDATE_ORDERS:
+        raise ValueError(f"Unknown update_order {update_order!r}, valid choices: {UPDATE_ORDERS}")
+    positive = {name: arguments[name] for name in ("embedding_dim", "history_buffer_size", "history_max_policies")}
+    positive["history_batch_size"] = arguments["history_batch_size"]
+    non_negative = {
+        name: arguments[name] for name in ("history_train_freq", "history_learning_starts", "n_state_action_pairs")
+    }
+    for name, value in positive.items():
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    for name, value in non_negative.items():
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+            raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    lr = arguments["critic_learning_rate"]
+    if lr is not None and not callable(lr) and (not isinstance(lr, (int, float)) or not np.isfinite(lr) or lr <= 0):
+        raise ValueError(f"critic_learning_rate must be a positive finite float, a schedule or None, got {lr!r}")
+    lam = arguments["value_target_lambda"]
+    if lam is not None and (not isinstance(lam, (int, float)) or not 0.0 <= lam <= 1.0):
+        raise ValueError(f"value_target_lambda must be in [0, 1] or None, got {lam!r}")
