@@ -70,14 +70,11 @@ def test_save_load_and_continue(tmp_path):
     assert loaded.num_timesteps == 48 and loaded.history.n_samples == 48
 
 
-@pytest.mark.parametrize("space", [*sorted(SPACE_ENVS), "box2x2"])
+@pytest.mark.parametrize("space", sorted(SPACE_ENVS))
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_action_spaces_predict_and_save_load(tmp_path, space, representation):
     """The docs' "Can I use?" table for A2CPeVFA, a (2, 2) Box included."""
-    if space == "box2x2":
-        env = _ObservationSpaceEnv(gym.spaces.Box(-1, 1, (3,), np.float32), gym.spaces.Box(-1, 1, (2, 2), np.float32))
-    else:
-        env = SPACE_ENVS[space]()
+    env = SPACE_ENVS[space]()
     model = A2CPeVFA("MlpPolicy", env, representation=representation, **FAST_A2C).learn(48)
     obs = np.stack([env.observation_space.sample() for _ in range(2)])
     actions, _ = model.predict(obs, deterministic=True)

@@ -126,3 +126,47 @@ def test_float64_observations_are_stored_as_float32():
     pid = history.add_record(_record(0))
     history.add_samples(np.ones((10, 3), np.float64), np.zeros(10), pid)
     assert history.samples()[0].dtype == np.float32
+
+
+def test_a_failed_load_leaves_the_history_as_it_was(tmp_path):
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, representation="opr", seed=0)
+    _fill(history, 3, 10)
+    history.save(tmp_path / "good")
+    other = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, representation="spr")
+    _fill(other, 1, 10)  # another representation than `history`
+    other.save(tmp_path / "other")
+    (tmp_path / "broken.npz").write_bytes((tmp_path / "good.npz").read_bytes()[:200])
+    with np.load(tmp_path / "good.npz") as archive:  # the right signature, but an array missing: found while reading
+        np.savez(tmp_path / "incomplete.npz", **{k: archive[k] for k in archive.files if k != "sample/targets"})
+    before = history.samples()
+    cases = [(tmp_path / "other", ValueError), (tmp_path / "broken.npz", Exception), (tmp_path / "incomplete.npz", KeyError)]
+    for path, error in cases:
+        with pytest.raises(error):
+            history.load(path)
+        assert history.policy_ids == [0, 1, 2]
+        np.testing.assert_array_equal(history.samples()[0], before[0])
+        np.testing.assert_array_equal(history.samples()[1], before[1])
+
+
+def test_save_is_atomic_and_takes_file_objects(tmp_path, monkeypatch):
+    import io
+
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    _fill(history, 2, 10)
+    buffer = io.BytesIO()
+    history.save(buffer)
+    buffer.seek(0)
+    loaded = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4).load(buffer)
+    assert loaded.policy_ids == [0, 1] and loaded.n_samples == 20
+    history.save(tmp_path / "h")
+    old = (tmp_path / "h.npz").read_bytes()
+    _fill(history, 1, 10)
+
+    def failing_savez(*args, **kwargs):
+        args[0].write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(OSError, match="disk full"):
+        history.save(tmp_path / "h")
+    assert (tmp_path / "h.npz").read_bytes() == old and [p.name for p in tmp_path.iterdir()] == ["h.npz"]

@@ -35,6 +35,8 @@ SPACE_ENVS = {
     "box": lambda: IdentityEnvBox(eps=0.5),
     "multidiscrete": lambda: IdentityEnvMultiDiscrete(2),
     "multibinary": lambda: IdentityEnvMultiBinary(2),
+    # a matrix-shaped Box: actions keep the action space's shape on every code path
+    "box2x2": lambda: _ObservationSpaceEnv(gym.spaces.Box(-1, 1, (3,), np.float32), gym.spaces.Box(-1, 1, (2, 2), np.float32)),
 }
 
 
