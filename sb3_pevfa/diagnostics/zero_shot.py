@@ -25,7 +25,7 @@ def _take(observations, index: np.ndarray):
 
 
 def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
-    """The raw data of ``policy`` in the history's record format."""
+    """The record of ``policy``, as the history stores it."""
     if isinstance(policy, (str, pathlib.Path)):
         from sb3_pevfa import PPOPeVFA
 

@@ -1,4 +1,4 @@
-"""The policy history: raw data of every recorded policy, and a FIFO of (observation, value target, policy id)."""
+"""The policy history: the record of every recorded policy, and a FIFO of (observation, value target, policy id)."""
 
 import copy
 import io
@@ -81,7 +81,7 @@ class _Ring:
 class PolicyHistory:
     """History of policies for PeVFA (paper Algorithm 2).
 
-    Per policy its raw data (flat actor parameters, state-action pairs, random code) is kept, never an
+    Per policy its record (flat actor parameters, state-action pairs, random code) is kept, never an
     embedding: embeddings are recomputed by the current encoder whenever they are needed. Beside it, a FIFO of
     ``(observation, value target, policy id)`` samples, bounded by ``buffer_size`` samples and, through the
     policies it refers to, by ``max_policies``. Evicting a policy evicts its samples (always the oldest).
@@ -216,7 +216,7 @@ class PolicyHistory:
         return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
 
     def records(self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS) -> dict[str, np.ndarray]:
-        """Stacked raw data of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
+        """Stacked records of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
         (size 0 along their first data axis), which saves copying what a representation does not read."""
         records = [self._policies[int(pid)] for pid in policy_ids]
         data = {}

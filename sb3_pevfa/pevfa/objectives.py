@@ -45,7 +45,7 @@ class RepresentationObjective(nn.Module):
         self.batch_policies = batch_policies
         self.learning_rate = learning_rate
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
+    def loss(self, representation: PolicyRepresentation, records: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
         """The loss on a batch of policies, and metrics to log."""
         raise NotImplementedError
 
@@ -56,7 +56,7 @@ class RepresentationObjective(nn.Module):
 class ContrastiveObjective(RepresentationObjective):
     """InfoNCE with a momentum (EMA) key encoder and a learned bilinear similarity W (CURL-style).
 
-    Query: the online encoder on one augmentation of each policy's data; key: the momentum encoder on another;
+    Query: the online encoder on one augmentation of each policy's record; key: the momentum encoder on another;
     the other policies of the batch are the negatives. Augmentations: OPR drops a random ``mask_ratio`` of the
     hidden units (whole rows, before the mean; the output layer and log-std are kept) and optionally corrupts a
     random ``noise_ratio`` of the parameters with Gaussian noise (``noise_std``); SPR keeps a random
@@ -97,10 +97,10 @@ class ContrastiveObjective(RepresentationObjective):
         self.key_encoder.requires_grad_(False)
         self.bilinear = nn.Parameter(th.eye(representation.embedding_dim))
 
-    def _encode(self, encoder: PolicyRepresentation, data: PolicyRecord) -> th.Tensor:
+    def _encode(self, encoder: PolicyRepresentation, records: PolicyRecord) -> th.Tensor:
         """One random augmentation of every policy of the batch, encoded."""
         if isinstance(encoder, OriginPolicyRepresentation):
-            params = data.params
+            params = records.params
             if self.noise_ratio > 0:
                 corrupt = th.rand_like(params) < self.noise_ratio
                 params = params + corrupt * self.noise_std * th.randn_like(params)
@@ -108,13 +108,13 @@ class ContrastiveObjective(RepresentationObjective):
             hidden = encoder.layout.linear_shapes[:-1]
             row_weights = [(th.rand(n_policies, out, device=params.device) >= self.mask_ratio).float() for out, _ in hidden]
             row_weights.append(th.ones(n_policies, encoder.layout.linear_shapes[-1][0], device=params.device))
-            return encoder(data._replace(params=params), row_weights=row_weights)
-        return encoder(data, keep=self.sample_ratio)  # SPR
+            return encoder(records._replace(params=params), row_weights=row_weights)
+        return encoder(records, keep=self.sample_ratio)  # SPR
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
-        query = self._encode(representation, data)
+    def loss(self, representation: PolicyRepresentation, records: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
+        query = self._encode(representation, records)
         with th.no_grad():
-            key = self._encode(self.key_encoder, data)
+            key = self._encode(self.key_encoder, records)
         logits = query @ self.bilinear @ key.T
         logits = logits - logits.max(dim=1, keepdim=True).values.detach()
         labels = th.arange(len(logits), device=logits.device)
@@ -175,14 +175,14 @@ class ActionPredictionObjective(RepresentationObjective):
             distribution = self.action_dist.proba_distribution(action_logits=params)
         return -distribution.log_prob(actions).mean()
 
-    def loss(self, representation: PolicyRepresentation, data: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
-        n_policies, n_pairs = data.states.shape[:2]
+    def loss(self, representation: PolicyRepresentation, records: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
+        n_policies, n_pairs = records.states.shape[:2]
         if n_pairs == 0:
             raise ValueError("objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0")
-        index = th.randint(n_pairs, (n_policies, self.pairs_per_policy), device=data.states.device)
-        states = th.gather(data.states, 1, index.unsqueeze(-1).expand(-1, -1, data.states.shape[-1]))
-        actions = th.gather(data.actions, 1, index.unsqueeze(-1).expand(-1, -1, data.actions.shape[-1]))
-        loss = self.negative_log_likelihood(representation(data), states, actions)
+        index = th.randint(n_pairs, (n_policies, self.pairs_per_policy), device=records.states.device)
+        states = th.gather(records.states, 1, index.unsqueeze(-1).expand(-1, -1, records.states.shape[-1]))
+        actions = th.gather(records.actions, 1, index.unsqueeze(-1).expand(-1, -1, records.actions.shape[-1]))
+        loss = self.negative_log_likelihood(representation(records), states, actions)
         return loss, {"aux_nll": loss.item()}
 
 
@@ -193,7 +193,7 @@ def make_objective(
     action_space: spaces.Space,
     **kwargs: Any,
 ) -> RepresentationObjective:
-    """Build objective ``name`` (one of :data:`OBJECTIVES`) for a learned representation (``opr`` or ``spr``)."""
+    """Build objective ``name`` (one of :records:`OBJECTIVES`) for a learned representation (``opr`` or ``spr``)."""
     if name not in OBJECTIVES:
         raise ValueError(f"Unknown representation objective {name!r}, valid choices: {OBJECTIVES}")
     if not isinstance(representation, (OriginPolicyRepresentation, SurfacePolicyRepresentation)):

@@ -11,9 +11,9 @@ from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, encode_actions, e
 
 
 class PolicyRepresentation(nn.Module):
-    """Maps the raw data of ``P`` policies (:class:`PolicyRecord`) to embeddings of shape ``(P, embedding_dim)``.
+    """Maps the records of ``P`` policies (:class:`PolicyRecord`) to embeddings of shape ``(P, embedding_dim)``.
 
-    Subclasses say which raw data they read, so the history stores what is needed.
+    Subclasses say which fields of a record they read (:attr:`fields`).
     """
 
     #: Reads state-action pairs (SPR)
@@ -32,7 +32,7 @@ class PolicyRepresentation(nn.Module):
             return ("states", "actions")
         return ("codes",) if self.uses_codes else ("params",)
 
-    def forward(self, data: PolicyRecord) -> th.Tensor:
+    def forward(self, records: PolicyRecord) -> th.Tensor:
         raise NotImplementedError
 
 
@@ -72,13 +72,13 @@ class OriginPolicyRepresentation(PolicyRepresentation):
             code_dim += log_std_arch[-1]
         self.projection = nn.Linear(code_dim, embedding_dim)
 
-    def layer_codes(self, data: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+    def layer_codes(self, records: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
         """Concatenated layer (and log-std) codes, ``(P, code_dim)``.
 
         :param row_weights: Optional per-layer ``(P, out)`` 0/1 weights of the rows to keep (augmentation);
             the layer code is then the mean over the kept rows.
         """
-        rows, log_std = self.layout.split(data.params)
+        rows, log_std = self.layout.split(records.params)
         codes = []
         for i, (layer_rows, encoder) in enumerate(zip(rows, self.row_encoders)):
             encoded = encoder(layer_rows)
@@ -91,8 +91,8 @@ class OriginPolicyRepresentation(PolicyRepresentation):
             codes.append(self.log_std_encoder(log_std))
         return th.cat(codes, dim=1)
 
-    def forward(self, data: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
-        return self.projection(self.layer_codes(data, row_weights))
+    def forward(self, records: PolicyRecord, row_weights: list[th.Tensor] | None = None) -> th.Tensor:
+        return self.projection(self.layer_codes(records, row_weights))
 
 
 class SurfacePolicyRepresentation(PolicyRepresentation):
@@ -127,9 +127,9 @@ class SurfacePolicyRepresentation(PolicyRepresentation):
         self.pair_encoder = nn.Sequential(*create_mlp(input_dim, -1, list(pair_arch), activation_fn))
         self.projection = nn.Linear(pair_arch[-1], embedding_dim)
 
-    def forward(self, data: PolicyRecord, keep: float | None = None) -> th.Tensor:
+    def forward(self, records: PolicyRecord, keep: float | None = None) -> th.Tensor:
         """:param keep: Fraction of pairs to keep (default: ``subsample`` in training mode, all in eval mode)."""
-        pairs = th.cat([data.states, encode_actions(data.actions, self.action_space)], dim=-1)
+        pairs = th.cat([records.states, encode_actions(records.actions, self.action_space)], dim=-1)
         n_pairs = pairs.shape[1]
         if n_pairs == 0:
             raise ValueError("representation='spr' needs state-action pairs: n_state_action_pairs must be > 0")
@@ -147,8 +147,8 @@ class RawPolicyRepresentation(PolicyRepresentation):
     def __init__(self, layout: ActorLayout):
         super().__init__(layout.n_params)
 
-    def forward(self, data: PolicyRecord) -> th.Tensor:
-        return data.params
+    def forward(self, records: PolicyRecord) -> th.Tensor:
+        return records.params
 
 
 class StatisticsPolicyRepresentation(PolicyRepresentation):
@@ -168,8 +168,8 @@ class StatisticsPolicyRepresentation(PolicyRepresentation):
         quantiles = th.quantile(values, self.quantiles.to(values.dtype), dim=1).T
         return th.cat([values.mean(dim=1, keepdim=True), std, quantiles], dim=1)
 
-    def forward(self, data: PolicyRecord) -> th.Tensor:
-        rows, log_std = self.layout.split(data.params)
+    def forward(self, records: PolicyRecord) -> th.Tensor:
+        rows, log_std = self.layout.split(records.params)
         tensors = [part for layer in rows for part in (layer[..., :-1], layer[..., -1])]
         if log_std is not None:
             tensors.append(log_std)
@@ -181,8 +181,8 @@ class RandomPolicyRepresentation(PolicyRepresentation):
 
     uses_codes = True
 
-    def forward(self, data: PolicyRecord) -> th.Tensor:
-        return data.codes
+    def forward(self, records: PolicyRecord) -> th.Tensor:
+        return records.codes
 
 
 class NoPolicyRepresentation(PolicyRepresentation):
@@ -191,8 +191,8 @@ class NoPolicyRepresentation(PolicyRepresentation):
     def __init__(self):
         super().__init__(0)
 
-    def forward(self, data: PolicyRecord) -> th.Tensor:
-        return data.params.new_zeros((data.params.shape[0], 0))
+    def forward(self, records: PolicyRecord) -> th.Tensor:
+        return records.params.new_zeros((records.params.shape[0], 0))
 
 
 #: Valid values of ``representation``.
@@ -207,7 +207,7 @@ def make_representation(
     embedding_dim: int = 64,
     **kwargs: Any,
 ) -> PolicyRepresentation:
-    """Build the representation called ``name`` (one of :data:`REPRESENTATIONS`).
+    """Build the representation called ``name`` (one of :records:`REPRESENTATIONS`).
 
     ``embedding_dim`` sets the size of ``opr``, ``spr`` and ``random``; ``rpr`` and ``stats`` have the size of
     their features, ``none`` has size 0. ``kwargs`` go to the representation's constructor.
