@@ -263,7 +263,7 @@ def test_history_bounds_during_training():
 
 
 @pytest.mark.parametrize("algo", [PPO, A2C])
-def test_snapshot_callback_on_plain_sb3(tmp_path, algo):
+def test_history_callback_on_plain_sb3(tmp_path, algo):
     model = algo("MlpPolicy", "CartPole-v1", n_steps=32, seed=0)
     callback = PolicyHistoryCallback(n_state_action_pairs=10)
     model.learn(128, callback=callback)
@@ -388,8 +388,6 @@ def test_policy_pickles_copies_and_deepcopies_like_sb3():
         # a copy's frozen critic is its own
         with clone.critic_frozen():
             assert not clone.critic_trainable and policy.critic_trainable
-    shallow = copy.copy(policy)
-    np.testing.assert_array_equal(shallow.predict_values(obs).detach(), expected)
 
 
 def test_a_second_history_callback_does_not_touch_the_behaviour_record():
@@ -402,3 +400,51 @@ def test_a_second_history_callback_does_not_touch_the_behaviour_record():
     np.testing.assert_array_equal(ours["params"], theirs["params"])
     np.testing.assert_array_equal(model.policy.behaviour_states.numpy(), ours["states"][0])
     assert not np.array_equal(ours["states"], theirs["states"])
+
+
+def test_gsde_probe_actions_have_their_own_noise():
+    """Each probe state of a gSDE policy's record gets its own exploration noise (not one matrix for all)."""
+    from sb3_pevfa.pevfa.records import record_policy
+
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", use_sde=True, **FAST)
+    policy = model.policy
+    same_state = np.repeat(model.observation_space.sample()[None], 20, axis=0)
+    actions = record_policy(policy, policy.layout, same_state, np.zeros(0))["actions"]
+    assert len(np.unique(actions)) == 20  # one shared exploration matrix gives 20 equal actions at one state
+
+
+def test_objective_gradients_do_not_reach_the_next_update():
+    kwargs = {name: dict(learning_starts=0, train_freq=32) for name in ("cl", "aux")}
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation="spr", representation_objectives=("cl", "aux"),
+                     objective_kwargs=kwargs, **FAST)  # fmt: skip
+    model.learn(192)
+    assert model.logger.name_to_value["pevfa/cl_updates"] == 2
+    own = [p for objective in model.policy.objectives.values() for p in objective.parameters() if p.requires_grad]
+    assert own and all(p.grad is None for p in own)
+
+
+def test_loading_weights_drops_the_cached_chi(tmp_path):
+    first = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).learn(128)
+    second = PPOPeVFA("MlpPolicy", "Pendulum-v1", **{**FAST, "seed": 1}).learn(128)
+    obs = th.zeros(2, 3)
+    first.policy.set_training_mode(False)
+    first.policy.predict_values(obs)  # chi of the behaviour record cached
+    first.set_parameters(second.get_parameters())
+    second.policy.set_training_mode(False)
+    np.testing.assert_allclose(first.policy.predict_values(obs).detach(), second.policy.predict_values(obs).detach())
+
+
+def test_log_interval_defaults_to_the_base_algorithms():
+    from stable_baselines3.common.logger import configure
+
+    from sb3_pevfa import A2CPeVFA
+
+    dumps = {}
+    for algo in (PPOPeVFA, A2CPeVFA):
+        model = algo("MlpPolicy", "CartPole-v1", n_steps=8, **({"batch_size": 8, "n_epochs": 1} if algo is PPOPeVFA else {}))
+        model.set_logger(configure(None, []))
+        counts = []
+        model.logger.dump = lambda step=0, counts=counts: counts.append(step)
+        model.learn(8 * 150)
+        dumps[algo] = len(counts)
+    assert dumps == {PPOPeVFA: 150, A2CPeVFA: 1}  # SB3: PPO logs every iteration, A2C every 100

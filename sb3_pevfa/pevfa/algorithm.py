@@ -199,6 +199,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 for key, value in values.items():
                     metrics.setdefault(key, []).append(value)
                 metrics[f"{name}_updates"].append(1.0)
+            optimizer.zero_grad()  # no stale gradient of the objective's own modules in the next update's clip norm
         return metrics
 
     def _rollout_critic_schedule(self) -> tuple[int, int]:
@@ -269,7 +270,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self: SelfPeVFAAlgorithm,
         total_timesteps: int,
         callback: MaybeCallback = None,
-        log_interval: int = 1,
+        log_interval: int | None = None,
         tb_log_name: str | None = None,
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
@@ -277,13 +278,14 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         if self.env is None and self.env_id is not None:
             # Loaded with env=None from a model that was built from an env id: rebuild that env (seeded).
             self.set_env(make_vec_env(self.env_id, n_envs=self.n_envs, seed=self.seed))
+        kwargs = {} if log_interval is None else {"log_interval": log_interval}  # None: the base's (PPO 1, A2C 100)
         super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
-            log_interval=log_interval,
             tb_log_name=tb_log_name or type(self).__name__,
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
+            **kwargs,
         )
         if self._last_obs is not None:
             self.record_behaviour_policy()  # the trained policy: the last record, and the critic's default

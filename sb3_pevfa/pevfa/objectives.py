@@ -193,7 +193,7 @@ def make_objective(
     action_space: spaces.Space,
     **kwargs: Any,
 ) -> RepresentationObjective:
-    """Build objective ``name`` (one of :records:`OBJECTIVES`) for a learned representation (``opr`` or ``spr``)."""
+    """Build objective ``name`` (one of :data:`OBJECTIVES`) for a learned representation (``opr`` or ``spr``)."""
     if name not in OBJECTIVES:
         raise ValueError(f"Unknown representation objective {name!r}, valid choices: {OBJECTIVES}")
     if not isinstance(representation, (OriginPolicyRepresentation, SurfacePolicyRepresentation)):

@@ -56,7 +56,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         (see :mod:`sb3_pevfa.pevfa.objectives`)
 
     Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``; other torch optimizers
-    that take ``foreach`` (A2C's RMSprop) get ``foreach=True`` unless it is given.
+    that take ``foreach`` (A2C's RMSprop) get ``foreach=True`` unless ``foreach`` or ``fused`` is given.
     """
 
     def __init__(
@@ -84,8 +84,10 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             # SB3's Adam settings (eps=1e-5) with the fused kernel: one call per step instead of a Python loop over
             # the parameter tensors (the encoder adds many). Pass optimizer_kwargs=dict(eps=1e-5) for SB3's own.
             kwargs["optimizer_kwargs"] = dict(eps=1e-5, fused=True)
-        elif "foreach" in inspect.signature(optimizer_class).parameters and "foreach" not in (
-            kwargs.get("optimizer_kwargs") or {}
+        elif (
+            optimizer_class is not th.optim.Adam
+            and "foreach" in inspect.signature(optimizer_class).parameters
+            and not {"foreach", "fused"} & set(kwargs.get("optimizer_kwargs") or {})
         ):
             # e.g. A2C's RMSprop: torch's multi-tensor kernels (the same update), not a loop over the tensors on a CPU
             kwargs["optimizer_kwargs"] = {**(kwargs.get("optimizer_kwargs") or {}), "foreach": True}
@@ -302,6 +304,12 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
 
     def clear_embedding_cache(self) -> None:
         self._embedding_cache = None
+
+    def load_state_dict(self, *args: Any, **kwargs: Any):  # type: ignore[override]
+        """``nn.Module.load_state_dict``; the cached chi of the old weights is dropped."""
+        result = super().load_state_dict(*args, **kwargs)
+        self.clear_embedding_cache()
+        return result
 
     def set_training_mode(self, mode: bool) -> None:
         """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs)."""

@@ -144,6 +144,10 @@ def record_policy(
 ) -> dict[str, np.ndarray]:
     """The record of one policy (numpy arrays): flat parameters, and actions sampled at ``probe_obs`` (SPR's pairs).
 
+    With gSDE every probe state gets its own exploration noise, drawn from the policy's current log-std
+    (``reset_noise`` over the probe batch; the rollout draws its own afterwards, as SB3 does at every rollout start),
+    so the pairs show the policy's exploration rather than one noise draw.
+
     :param probe_obs: A batch of raw observations (as stored in a rollout buffer), or None for no pairs
     :param code: The policy's random code (empty unless the ``random`` representation is used)
     """
@@ -155,6 +159,8 @@ def record_policy(
     else:
         with th.no_grad():
             obs_tensor = obs_as_tensor(probe_obs, policy.device)
+            if policy.use_sde:
+                policy.reset_noise(len(next(iter(obs_tensor.values())) if isinstance(obs_tensor, dict) else obs_tensor))
             sampled = policy.get_distribution(obs_tensor).get_actions(deterministic=False)
             states = flatten_observations(obs_tensor, observation_space).cpu().numpy().astype(np.float32)
         actions = sampled.reshape(len(states), -1).cpu().numpy().astype(np.float32)

@@ -207,7 +207,7 @@ def make_representation(
     embedding_dim: int = 64,
     **kwargs: Any,
 ) -> PolicyRepresentation:
-    """Build the representation called ``name`` (one of :records:`REPRESENTATIONS`).
+    """Build the representation called ``name`` (one of :data:`REPRESENTATIONS`).
 
     ``embedding_dim`` sets the size of ``opr``, ``spr`` and ``random``; ``rpr`` and ``stats`` have the size of
     their features, ``none`` has size 0. ``kwargs`` go to the representation's constructor.
