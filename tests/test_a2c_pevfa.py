@@ -7,9 +7,10 @@ import torch as th
 from conftest import AS_SB3, DictPendulum, module_parameters, sb3_twin_runs
 from stable_baselines3 import A2C
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import obs_as_tensor
 from test_sb3_generic import SPACE_ENVS, _ObservationSpaceEnv
 
-from sb3_pevfa import REPRESENTATIONS, A2CPeVFA
+from sb3_pevfa import REPRESENTATIONS, A2CPeVFA, PolicyRecord
 
 #: Tiny A2C budget: 8-step rollouts, historical updates from the start.
 FAST_A2C = dict(n_steps=8, history_learning_starts=0, history_train_freq=4, seed=0)
@@ -30,14 +31,18 @@ def test_without_representation_and_history_it_is_sb3_a2c(env_id):
 
 @pytest.mark.parametrize("representation", REPRESENTATIONS)
 def test_every_representation_trains_on_the_history(representation):
-    model = A2CPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **FAST_A2C)
-    critic_before = module_parameters(model.policy.value_net)
-    model.learn(64)
+    def trained(history_train_freq: int) -> A2CPeVFA:
+        model = A2CPeVFA("MlpPolicy", "Pendulum-v1", representation=representation,
+                         **{**FAST_A2C, "history_train_freq": history_train_freq})  # fmt: skip
+        return model.learn(64)
+
+    model, without_history = trained(4), trained(0)
     # one record per update (8 rollouts of 8 steps) and the final policy; every sample kept
     assert model.history.n_policies == 9 and model.history.n_samples == 64
     assert [model.history.record_info(i)["num_timesteps"] for i in model.history.policy_ids] == list(range(0, 72, 8))
     assert model.logger.name_to_value["pevfa/history_updates"] == 2  # 8 env steps per update, one per 4 steps
-    assert not th.equal(module_parameters(model.policy.value_net), critic_before)
+    # the historical updates moved the critic (the runs are the same otherwise), never the actor's first update
+    assert not th.allclose(module_parameters(model.policy.value_net), module_parameters(without_history.policy.value_net))
 
 
 def test_critic_first_order_and_objectives():
@@ -52,8 +57,17 @@ def test_critic_first_order_and_objectives():
     )
     model.learn(48)
     logs = model.logger.name_to_value
-    assert logs["pevfa/cl_updates"] == 1 and logs["pevfa/aux_updates"] == 1
-    assert "pevfa/critic_value_loss" in logs and model.history.n_policies == 7
+    assert logs["pevfa/cl_updates"] == 1 and logs["pevfa/aux_updates"] == 1 and model.history.n_policies == 7
+    # the last rollout's values are those of the critic after its own step (advantages recomputed), and the actor's
+    # step left that critic as it was (frozen): they equal today's critic at the rollout's record
+    policy, history = model.policy, model.history
+    policy.set_training_mode(False)
+    chi = policy.embed(PolicyRecord.from_numpy(history.records([history.policy_ids[-2]])))
+    buffer = model.rollout_buffer
+    assert buffer.generator_ready  # A2C's update flattened the buffer (env-major), values with it
+    with th.no_grad():
+        values = policy.predict_values(obs_as_tensor(buffer.observations, model.device), chi)
+    np.testing.assert_allclose(buffer.values.flatten(), values.flatten(), rtol=1e-5, atol=1e-6)
 
 
 def test_save_load_and_continue(tmp_path):
