@@ -170,3 +170,49 @@ def test_save_is_atomic_and_takes_file_objects(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         history.save(tmp_path / "h")
     assert (tmp_path / "h.npz").read_bytes() == old and [p.name for p in tmp_path.iterdir()] == ["h.npz"]
+
+
+def test_non_finite_values_are_refused_where_they_enter(tmp_path):
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    bad_record = _record(0)
+    bad_record["params"][3] = np.nan
+    with pytest.raises(ValueError, match=r"non-finite policy record field 'params': nan at index \(3,\)"):
+        history.add_record(bad_record)
+    assert history.n_policies == 0
+    pid = history.add_record(_record(0))
+    with pytest.raises(ValueError, match="non-finite value targets: inf"):
+        history.add_samples(np.zeros((3, 3)), np.array([0.0, np.inf, 1.0]), pid)
+    with pytest.raises(ValueError, match="non-finite observations 'obs'"):
+        history.add_samples(np.full((3, 3), -np.inf), np.zeros(3), pid)
+    assert history.n_samples == 0
+    # a file with a NaN (written by hand: the history never holds one) is refused on load, the history kept
+    history.add_samples(np.zeros((3, 3)), np.zeros(3), pid)
+    history.save(tmp_path / "h")
+    with np.load(tmp_path / "h.npz") as archive:
+        arrays = {k: archive[k] for k in archive.files}
+    arrays["sample/targets"][1] = np.nan
+    np.savez(tmp_path / "nan.npz", **arrays)
+    with pytest.raises(ValueError, match="non-finite value targets"):
+        history.load(tmp_path / "nan.npz")
+    assert history.n_samples == 3
+
+
+def test_load_checks_every_layer_and_the_spaces(tmp_path):
+    from sb3_pevfa.pevfa.records import ActorLayout
+
+    def history_of(layout, obs=OBS):
+        return PolicyHistory(obs, ACT, layout.n_params, n_state_action_pairs=4, representation="opr", layout=layout)
+
+    # two actors with the same number of parameters (22) but other layers
+    a = ActorLayout(linear_shapes=((4, 2), (2, 4)), log_std_shape=())
+    b = ActorLayout(linear_shapes=((2, 2), (2, 2), (2, 4)), log_std_shape=())
+    assert a.n_params == b.n_params == 22
+    history = history_of(a)
+    history.add_record({**_record(0, n_params=22)})
+    history.save(tmp_path / "h")
+    with pytest.raises(ValueError, match=r"actor_linear_shapes: file has \[\[4, 2\], \[2, 4\]\], model expects \[\[2, 2\]"):
+        history_of(b).load(tmp_path / "h")
+    bounded = gym.spaces.Box(-2, 2, (3,), np.float32)  # same shape, other bounds
+    with pytest.raises(ValueError, match="observation_space: file has"):
+        history_of(a, bounded).load(tmp_path / "h")
+    history_of(a).load(tmp_path / "h")  # the same layout and spaces load

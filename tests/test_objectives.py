@@ -99,17 +99,31 @@ def test_objective_errors():
         make_objective("cl", opr, OBS, gym.spaces.Discrete(2), momentum=2.0)
     with pytest.raises(ValueError, match="batch_policies"):
         make_objective("aux", opr, OBS, gym.spaces.Discrete(2), batch_policies=0)
-    with pytest.raises(TypeError):
+    with pytest.raises(ValueError, match=r"Unknown objective_kwargs of 'aux' \['mask_ratio'\], valid choices: \['train_freq'"):
         make_objective("aux", opr, OBS, gym.spaces.Discrete(2), mask_ratio=0.1)
+    with pytest.raises(ValueError, match="batch_policies must be an int >= 2"):  # one policy: it would never train
+        make_objective("cl", opr, OBS, gym.spaces.Discrete(2), batch_policies=1)
     cases = [
         (dict(representation="random", representation_objectives=("cl",)), "needs representation"),
         (dict(representation_objectives=("cl", "cl")), "twice"),
         (dict(representation_objectives=("contrastive",)), "valid choices"),
         (dict(representation_objectives=("cl",), objective_kwargs={"aux": {}}), "not in representation_objectives"),
+        (dict(representation_kwargs=dict(layr_arch=(8,))), r"Unknown representation_kwargs of 'opr' \['layr_arch'\]"),
+        (dict(representation="spr", representation_kwargs=dict(sub_sample=0.5)), "valid choices: .*'subsample'"),
+        (dict(history_buffer_size=2048), "holds no more than one rollout"),
     ]
     for kwargs, match in cases:
         with pytest.raises(ValueError, match=match):
             PPOPeVFA("MlpPolicy", "CartPole-v1", **kwargs)
+    for kwargs, match in [
+        (dict(representation_kwargs=[("layer_arch", (8,))]), "representation_kwargs must be a dict, got list"),
+        (dict(representation_objectives="cl", objective_kwargs={"cl": 3}), "must map objective names to dicts"),
+    ]:
+        with pytest.raises(TypeError, match=match):
+            PPOPeVFA("MlpPolicy", "CartPole-v1", **kwargs)
+    # a single objective as a string is that objective, not its letters
+    assert PPOPeVFA("MlpPolicy", "CartPole-v1", representation_objectives="cl").policy.representation_objectives == ("cl",)
+    PPOPeVFA("MlpPolicy", "CartPole-v1", history_buffer_size=2048, history_train_freq=0)  # no historical updates: fine
 
 
 OBJECTIVE_FAST = {"learning_starts": 0, "train_freq": 16}

@@ -82,6 +82,13 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                     f"as rollout_buffer_class, got {self.rollout_buffer_class.__name__}"
                 )
             self.rollout_buffer_kwargs = {**self.rollout_buffer_kwargs, "value_target_lambda": self.value_target_lambda}
+        rollout_size = self.n_steps * self.n_envs
+        if self.history_train_freq > 0 and self.history_buffer_size <= rollout_size:
+            raise ValueError(
+                f"history_buffer_size={self.history_buffer_size} holds no more than one rollout (n_steps * n_envs = "
+                f"{rollout_size}): every sample would be the current policy's and no historical update would run; "
+                "make it larger, or set history_train_freq=0 to turn the historical updates off"
+            )
         super()._setup_model()
         self.critic_lr_schedule = (
             self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
@@ -96,6 +103,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             max_policies=self.history_max_policies,
             seed=self.seed,
             representation=self.representation,
+            layout=self.policy.layout,
         )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
         self._critic_params = list(self.policy.critic_parameters())

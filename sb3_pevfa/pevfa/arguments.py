@@ -37,11 +37,6 @@ _SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscre
 def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
     """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice)."""
     ours = {name: arguments[name] for name in _POLICY_ARGUMENTS}
-    ours["representation_objectives"] = tuple(
-        [ours["representation_objectives"]]
-        if isinstance(ours["representation_objectives"], str)
-        else ours["representation_objectives"]
-    )
     policy_kwargs = dict(policy_kwargs or {})
     clash = sorted(set(policy_kwargs) & set(ours))
     if clash:

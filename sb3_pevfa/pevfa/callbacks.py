@@ -52,6 +52,7 @@ class PolicyHistoryCallback(BaseCallback):
                 buffer_size=self.buffer_size,
                 max_policies=self.max_policies,
                 seed=self.model.seed,
+                layout=layout,
             )
         elif self.history.n_params != layout.n_params:
             raise ValueError(

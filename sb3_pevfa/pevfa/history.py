@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 
-from sb3_pevfa.pevfa.records import RECORD_FIELDS, state_dim
+from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, state_dim
 
 #: Version of the file format written by :meth:`PolicyHistory.save`.
 HISTORY_FORMAT_VERSION = 2
@@ -20,6 +20,13 @@ HISTORY_FORMAT_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 
 ObsBatch = np.ndarray | dict[str, np.ndarray]
+
+
+def _check_finite(array: np.ndarray, what: str) -> None:
+    """A ValueError at the first NaN or infinity: one would poison every critic trained on the history."""
+    if np.issubdtype(array.dtype, np.floating) and not np.isfinite(array).all():
+        index = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+        raise ValueError(f"The history refuses non-finite {what}: {array[index]} at index {index}")
 
 
 class _Ring:
@@ -95,6 +102,7 @@ class PolicyHistory:
     :param max_policies: Maximum number of policies kept
     :param seed: Seed of the sampling RNG (the model passes its own seed)
     :param representation: Name of the representation this history feeds (checked on load)
+    :param layout: The actor's parameter layout (every layer's shape is checked on load)
     """
 
     def __init__(
@@ -108,6 +116,7 @@ class PolicyHistory:
         max_policies: int = 10_000,
         seed: int | None = None,
         representation: str | None = None,
+        layout: ActorLayout | None = None,
     ):
         for name, value in (("buffer_size", buffer_size), ("max_policies", max_policies)):
             if not isinstance(value, (int, np.integer)) or value <= 0:
@@ -122,6 +131,9 @@ class PolicyHistory:
         self.buffer_size = int(buffer_size)
         self.max_policies = int(max_policies)
         self.representation = representation
+        if layout is not None and layout.n_params != self.n_params:
+            raise ValueError(f"n_params={n_params} does not match the actor layout's {layout.n_params}")
+        self.layout = layout
         self.rng = np.random.default_rng(seed)
         self._obs_keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
         self.reset()
@@ -161,6 +173,10 @@ class PolicyHistory:
             "n_state_action_pairs": self.n_state_action_pairs,
             "code_dim": self.code_dim,
             "representation": self.representation,
+            "observation_space": str(self.observation_space),
+            "action_space_details": str(self.action_space),
+            "actor_linear_shapes": None if self.layout is None else [list(shape) for shape in self.layout.linear_shapes],
+            "actor_log_std_shape": None if self.layout is None else list(self.layout.log_std_shape),
         }
 
     # ------------------------------------------------------------------ policies
@@ -197,6 +213,7 @@ class PolicyHistory:
         for name in RECORD_FIELDS:
             if tuple(record[name].shape) != expected[name]:
                 raise ValueError(f"Policy record field {name!r} has shape {record[name].shape}, expected {expected[name]}")
+            _check_finite(record[name], f"policy record field {name!r}")
         policy_id = self._next_id
         self._next_id += 1
         self._policies[policy_id] = {name: np.asarray(record[name], dtype=np.float32) for name in RECORD_FIELDS}
@@ -247,10 +264,12 @@ class PolicyHistory:
         if policy_id != self.latest_policy_id:
             raise ValueError("Samples must come from the latest recorded policy (the FIFO is ordered by policy)")
         targets = np.asarray(targets, dtype=np.float32).reshape(-1)
+        _check_finite(targets, "value targets")
         rows: dict[str, np.ndarray] = {}
         for name, (shape, dtype) in self._obs_specs().items():
             array = observations if self._obs_keys is None else observations[name.split("/", 1)[1]]
             rows[name] = np.asarray(array).reshape(-1, *shape).astype(dtype, copy=False)
+            _check_finite(rows[name], f"observations {name!r}")
             if len(rows[name]) != len(targets):
                 raise ValueError(f"{len(rows[name])} observations for {len(targets)} targets")
         rows["targets"] = targets
@@ -353,10 +372,14 @@ class PolicyHistory:
                 raise ValueError(
                     f"History file {path} has format version {version}, this sb3-pevfa reads versions {_READABLE_VERSIONS}"
                 )
+            found_signature = meta["signature"]
             mismatches = {
-                key: (meta["signature"].get(key), value)
+                key: (found_signature.get(key), value)
                 for key, value in self.signature.items()
-                if meta["signature"].get(key) != value
+                # format 1 files hold fewer keys: those they have are checked; a history without a layout takes any
+                if (version > 1 or key in found_signature)
+                and not (key.startswith("actor_") and self.layout is None)
+                and found_signature.get(key) != value
             }
             if mismatches:
                 details = ", ".join(

@@ -12,6 +12,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_pevfa.common.checks import check_keyword_arguments
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
 from sb3_pevfa.pevfa.representations import (
     OriginPolicyRepresentation,
@@ -34,7 +35,7 @@ class RepresentationObjective(nn.Module):
         for key, value, minimum in (
             ("train_freq", train_freq, 1),
             ("learning_starts", learning_starts, 0),
-            ("batch_policies", batch_policies, 1),
+            ("batch_policies", batch_policies, 2),  # a contrast needs negatives; AUX trains on a batch of policies
         ):
             if not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{self.name} {key} must be an int >= {minimum}, got {value!r}")
@@ -202,5 +203,7 @@ def make_objective(
             f"not a {type(representation).__name__}"
         )
     if name == "cl":
+        check_keyword_arguments(ContrastiveObjective, kwargs, "objective_kwargs of 'cl'", skip=1)
         return ContrastiveObjective(representation, **kwargs)
+    check_keyword_arguments(ActionPredictionObjective, kwargs, "objective_kwargs of 'aux'", skip=3)
     return ActionPredictionObjective(representation, observation_space, action_space, **kwargs)

@@ -21,6 +21,8 @@ from sb3_pevfa.pevfa.representations import PolicyRepresentation, make_represent
 
 
 def _check_objectives(objectives: tuple[str, ...], objective_kwargs: dict[str, dict[str, Any]]) -> None:
+    if not isinstance(objective_kwargs, dict) or not all(isinstance(v, dict) for v in objective_kwargs.values()):
+        raise TypeError(f"objective_kwargs must map objective names to dicts of settings, got {objective_kwargs!r}")
     unknown = [name for name in objectives if name not in OBJECTIVES]
     if unknown:
         raise ValueError(f"Unknown representation objectives {unknown}, valid choices: {OBJECTIVES}")
@@ -101,6 +103,12 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             n_state_action_pairs = 0
         self.representation_name = representation
         self.embedding_dim = embedding_dim
+        if not isinstance(representation_kwargs, dict | None):
+            raise TypeError(f"representation_kwargs must be a dict, got {type(representation_kwargs).__name__}")
+        if not isinstance(objective_kwargs, dict | None):
+            raise TypeError(f"objective_kwargs must be a dict, got {type(objective_kwargs).__name__}")
+        if isinstance(representation_objectives, str):  # "cl" means ("cl",), not ("c", "l")
+            representation_objectives = (representation_objectives,)
         self.representation_kwargs = dict(representation_kwargs or {})
         self.n_state_action_pairs = int(n_state_action_pairs)
         self.critic_embedding_arch = list(critic_embedding_arch)
@@ -108,8 +116,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.critic_combine = critic_combine
         self.critic_activation_fn = critic_activation_fn
         self.representation_objectives = tuple(representation_objectives)
+        _check_objectives(self.representation_objectives, objective_kwargs or {})
         self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
-        _check_objectives(self.representation_objectives, self.objective_kwargs)
         #: False inside :meth:`critic_frozen`: values carry no gradient
         self.critic_trainable = True
         self._embedding_cache: th.Tensor | None = None

@@ -7,6 +7,7 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
 
+from sb3_pevfa.common.checks import check_keyword_arguments
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, encode_actions, encoded_action_dim, has_image, state_dim
 
 
@@ -219,8 +220,10 @@ def make_representation(
     if name in ("rpr", "stats", "none", "random") and kwargs:
         raise ValueError(f"representation={name!r} takes no representation_kwargs, got {sorted(kwargs)}")
     if name == "opr":
+        check_keyword_arguments(OriginPolicyRepresentation, kwargs, "representation_kwargs of 'opr'", skip=2)
         return OriginPolicyRepresentation(layout, embedding_dim, **kwargs)
     if name == "spr":
+        check_keyword_arguments(SurfacePolicyRepresentation, kwargs, "representation_kwargs of 'spr'", skip=3)
         return SurfacePolicyRepresentation(observation_space, action_space, embedding_dim, **kwargs)
     if name == "rpr":
         return RawPolicyRepresentation(layout)
