@@ -311,3 +311,27 @@ def test_mixed_dict_observations_with_objectives(tmp_path, representation):
     obs = {key: np.stack([space.sample() for _ in range(3)]) for key, space in model.observation_space.spaces.items()}
     loaded = _saved_and_loaded(model, tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+@pytest.mark.parametrize("representation", ["opr", "none"])
+def test_critic_only_steps_leave_a_shared_cnn_extractor_and_the_actor_alone(representation):
+    """History and critic-first steps train the critic alone: with a features extractor shared by actor and critic
+    (SB3's CnnPolicy default) the actor's outputs stay exactly as they were, so the rollout's log-probabilities
+    stay valid for the PPO update."""
+    env = FakeImageEnv(screen_height=36, screen_width=36, n_channels=1, discrete=True)
+    model = PPOPeVFA("CnnPolicy", env, representation=representation, update_order="critic_first",
+                     **{**FAST, "n_steps": 32, "batch_size": 16})  # fmt: skip
+    assert model.policy.share_features_extractor
+    model.learn(96)
+    obs = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(4)]))
+
+    def actor_outputs():
+        with th.no_grad():
+            return model.policy.get_distribution(obs).distribution.logits.clone()
+
+    before, extractor = actor_outputs(), [p.detach().clone() for p in model.policy.features_extractor.parameters()]
+    model._history_credit = 4 * model.history_train_freq
+    assert len(model._train_on_history()) > 0
+    model._train_critic_on_rollout()
+    assert th.equal(actor_outputs(), before)
+    assert all(th.equal(a, b) for a, b in zip(model.policy.features_extractor.parameters(), extractor))

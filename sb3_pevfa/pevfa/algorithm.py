@@ -107,6 +107,9 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
         self._critic_params = list(self.policy.critic_parameters())
+        critic_ids = {id(p) for p in self._critic_params}
+        # what a critic-only step must leave alone: a features extractor shared with the actor (CnnPolicy)
+        self._shared_params = [p for p in self.policy.optimizer.param_groups[0]["params"] if id(p) not in critic_ids]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -114,7 +117,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         return state_dicts, variables
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params"]
+        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params", "_shared_params"]
 
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
         super()._update_learning_rate(optimizers)
@@ -156,8 +159,11 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
 
     # ------------------------------------------------------------------ training
     def _critic_step(self, loss: th.Tensor) -> None:
+        """One step of the critic (and encoder) alone: the actor, a shared features extractor included, stays."""
         self.policy.optimizer.zero_grad()
         loss.backward()
+        for param in self._shared_params:
+            param.grad = None  # Adam skips it: the actor's outputs, and so the rollout's log-probabilities, stay valid
         th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=self.fast_path or None)
         self.policy.optimizer.step()
 
