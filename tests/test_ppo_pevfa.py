@@ -448,3 +448,29 @@ def test_log_interval_defaults_to_the_base_algorithms():
         model.learn(8 * 150)
         dumps[algo] = len(counts)
     assert dumps == {PPOPeVFA: 150, A2CPeVFA: 1}  # SB3: PPO logs every iteration, A2C every 100
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
+@pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
+def test_a_nan_actor_stops_the_run_at_once(env_id, fast_path):
+    """As SB3: the action distribution's argument check names the NaN, on both code paths (no silent NaN run)."""
+    model = PPOPeVFA("MlpPolicy", env_id, fast_path=fast_path, **FAST)
+    model.learn(64)
+    with th.no_grad():
+        model.policy.action_net.weight[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="Expected parameter (loc|logits)"):
+        model.learn(64, reset_num_timesteps=False)
+
+
+def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order="critic_first", **FAST)
+    model.learn(128)
+    with th.no_grad():
+        model.policy.value_net.output.bias.fill_(float("inf"))
+    encoder = module_parameters(model.policy.representation)
+    model._history_credit = 4 * model.history_train_freq
+    with pytest.raises(ValueError, match="historical value loss is (nan|inf)"):
+        model._train_on_history()
+    with pytest.raises(ValueError, match="critic-first epochs is (nan|inf)"):
+        model._train_critic_on_rollout()
+    assert th.equal(module_parameters(model.policy.representation), encoder)  # no step spread it

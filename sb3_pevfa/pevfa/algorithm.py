@@ -16,6 +16,7 @@ One iteration, as :meth:`PeVFAAlgorithm.train` reads:
 """
 
 import io
+import math
 import pathlib
 from typing import Any, TypeVar
 
@@ -158,14 +159,19 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._rollout_episode_returns.extend(info["episode"]["r"] for info in infos if "episode" in info)
 
     # ------------------------------------------------------------------ training
-    def _critic_step(self, loss: th.Tensor) -> None:
-        """One step of the critic (and encoder) alone: the actor, a shared features extractor included, stays."""
+    def _critic_step(self, loss: th.Tensor, what: str) -> float:
+        """One step of the critic (and encoder) alone: the actor, a shared features extractor included, stays.
+        Returns the loss; a non-finite one is an error before it reaches any parameter."""
+        value = loss.item()
+        if not math.isfinite(value):
+            raise ValueError(f"The {what} is {value} (non-finite): the critic or its inputs hold NaN/inf; no step taken")
         self.policy.optimizer.zero_grad()
         loss.backward()
         for param in self._shared_params:
             param.grad = None  # Adam skips it: the actor's outputs, and so the rollout's log-probabilities, stay valid
         th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=self.fast_path or None)
         self.policy.optimizer.step()
+        return value
 
     def _train_on_history(self) -> list[float]:
         """Extra critic updates on the samples of historical policies (Algorithm 2, line 8)."""
@@ -186,8 +192,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             chi = self.policy.embed(records)[th.as_tensor(inverse, device=self.device)]
             values = self.policy.predict_values(obs_as_tensor(observations, self.device), chi)
             loss = F.mse_loss(values.flatten(), th.as_tensor(targets, device=self.device))
-            self._critic_step(loss)
-            losses.append(loss.item())
+            losses.append(self._critic_step(loss, "historical value loss"))
         return losses
 
     def _train_objectives(self) -> dict[str, list[float]]:
@@ -206,6 +211,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                     break
                 records = PolicyRecord.from_numpy(self.history.records(policy_ids), self.device)
                 loss, values = objective.loss(self.policy.representation, records)
+                if not th.isfinite(loss):
+                    raise ValueError(f"The {name} objective's loss is {loss.item()} (non-finite); no step taken")
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
@@ -232,8 +239,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 index = indices[start : start + batch_size]
                 batch = fast_path.rows(observations, index)
                 loss = F.mse_loss(self.policy.predict_values(batch).flatten(), returns[index])
-                self._critic_step(loss)
-                losses.append(loss.item())
+                losses.append(self._critic_step(loss, "value loss of the critic-first epochs"))
         return losses
 
     def _recompute_advantages(self) -> None:
