@@ -102,10 +102,13 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
     conf = conf_file(variant, args)
     start = time.perf_counter()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    process = subprocess.run(command, env=env, capture_output=True, text=True)
+    folder.mkdir(parents=True)
+    with open(folder / "output.log", "w") as log:  # a file, not a pipe: wait4 below must not block on output
+        process = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(process.pid, 0)  # this child's own CPU time, whatever else runs beside it
     wall = time.perf_counter() - start
-    if process.returncode != 0:
-        (args.out / f"{name}.err").write_text(process.stdout[-5000:] + process.stderr[-20000:])
+    if os.waitstatus_to_exitcode(status) != 0:
+        shutil.copy(folder / "output.log", args.out / f"{name}.err")
         return f"{name}: FAILED (see {name}.err)"
     evaluations = np.load(next(folder.rglob("evaluations.npz")))
     returns = evaluations["results"]
@@ -116,6 +119,7 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
         "seed": seed,
         "timesteps": timesteps,
         "wall_time_s": wall,
+        "cpu_time_s": usage.ru_utime + usage.ru_stime,
         "command": " ".join(os.path.relpath(c) if c in (str(conf), str(folder)) else c for c in command[1:]),
         "curve": [
             {"timesteps": int(t), "mean_return": float(r.mean()), "std_return": float(r.std())}
@@ -123,8 +127,20 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
         ],
         "episode_returns": returns.tolist(),
     }
+    add_wall_clock(result, folder)
     (args.out / f"{name}.json").write_text(json.dumps(result, indent=1))
     return f"{name}: max {returns.mean(axis=1).max():.0f} ({wall:.0f} s)"
+
+
+def add_wall_clock(result: dict, folder: pathlib.Path) -> None:
+    """Each evaluation's wall-clock time since the start of its run (``curve[i]["wall_s"]``), read from the
+    training env's Monitor file (episode ends: cumulative steps and their times), interpolated at the evaluation's
+    step. Evaluation time is inside it, as it is inside the run's."""
+    monitor = next(folder.rglob("*.monitor.csv"))
+    episodes = np.loadtxt(monitor, delimiter=",", skiprows=2, ndmin=2)  # r, l, t
+    steps, seconds = np.concatenate([[0], np.cumsum(episodes[:, 1])]), np.concatenate([[0], episodes[:, 2]])
+    for point in result["curve"]:
+        point["wall_s"] = float(np.interp(point["timesteps"], steps, seconds))
 
 
 # ---------------------------------------------------------------------------------------------------- report
@@ -133,6 +149,9 @@ def load_results(out: pathlib.Path) -> dict[str, dict[str, list[dict]]]:
     results: dict[str, dict[str, list[dict]]] = {}
     for path in sorted(out.glob("*.json")):
         result = json.loads(path.read_text())
+        folder = out / "runs" / path.stem
+        if "wall_s" not in result["curve"][0] and folder.is_dir():  # runs of before the per-second view
+            add_wall_clock(result, folder)
         results.setdefault(result["env"], {}).setdefault(result["variant"], []).append(result)
     for variants in results.values():
         for runs in variants.values():
@@ -185,30 +204,68 @@ def report(out: pathlib.Path, baseline: str = "ppo") -> str:
                 f"{change} | {s['final'].mean():.0f} ± {s['final'].std() / 2:.0f} | {s['auc'].mean():.0f} | "
                 f"{', '.join(f'{v:.0f}' for v in s['max'])} | {np.mean([r['wall_time_s'] for r in runs]):.0f} s |"
             )
-        lines.append("")
+        lines += ["", *per_second(variants, baseline), ""]
     return "\n".join(lines)
 
 
+def best_so_far_at(run: dict, seconds: float) -> float:
+    """The best evaluation of ``run`` made within ``seconds`` of its start (wall-clock; -inf if none)."""
+    returns = [c["mean_return"] for c in run["curve"] if c["wall_s"] <= seconds]
+    return max(returns) if returns else float("-inf")
+
+
+def per_second(variants: dict[str, list[dict]], baseline: str) -> list[str]:
+    """The same runs per second: speed (steps per wall-clock and per CPU second of the training process) and the
+    best-so-far return at the baseline's own mean wall-clock time of a whole run."""
+    if baseline not in variants or "wall_s" not in variants[baseline][0]["curve"][0]:
+        return []
+    budget = float(np.mean([r["curve"][-1]["wall_s"] for r in variants[baseline]]))
+    base_speed = np.mean([r["timesteps"] / r["wall_time_s"] for r in variants[baseline]])
+    lines = [
+        f"Per second (wall-clock budget: {baseline}'s mean run, {budget:.0f} s):",
+        "",
+        f"| variant | steps/s (wall) | steps/CPU-s | speed vs {baseline} | best-so-far at {budget:.0f} s (± ½ std) "
+        "| per seed |",
+        "|---|---|---|---|---|---|",
+    ]
+    for variant, runs in sorted(variants.items(), key=lambda item: (item[0] != baseline, item[0])):
+        speed = np.array([r["timesteps"] / r["wall_time_s"] for r in runs])
+        cpu = [r["timesteps"] / r["cpu_time_s"] for r in runs if "cpu_time_s" in r]
+        best = np.array([best_so_far_at(r, budget) for r in runs])
+        lines.append(
+            f"| {variant} | {speed.mean():.0f} ± {speed.std():.0f} | {f'{np.mean(cpu):.0f}' if cpu else 'not recorded'} | "
+            f"{speed.mean() / base_speed:.2f}x | {best.mean():.0f} ± {best.std() / 2:.0f} | "
+            f"{', '.join(f'{v:.0f}' for v in best)} |"
+        )
+    return lines
+
+
 def plot(out: pathlib.Path, png: pathlib.Path) -> None:
-    """Learning curves per task: mean over seeds with a band of one std, every variant in its fixed colour."""
+    """Learning curves per task, against environment steps (top) and wall-clock seconds (bottom): mean over seeds
+    with a band of one std, every variant in its fixed colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     results = load_results(out)
-    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    fig, axes = plt.subplots(2, len(results), figsize=(6 * len(results), 8), squeeze=False)
     colors = {variant: f"C{i}" for i, variant in enumerate(VARIANTS)}
-    for ax, (env_id, variants) in zip(axes[0], sorted(results.items())):
+    for column, (env_id, variants) in enumerate(sorted(results.items())):
         for variant, runs in sorted(variants.items()):
             n = min(len(r["curve"]) for r in runs)
-            steps = np.array([c["timesteps"] for c in runs[0]["curve"][:n]])
             returns = np.array([[c["mean_return"] for c in r["curve"][:n]] for r in runs])
             mean, std = returns.mean(axis=0), returns.std(axis=0)
-            ax.plot(steps, mean, color=colors.get(variant), label=f"{variant} ({len(runs)} seeds)")
-            ax.fill_between(steps, mean - std, mean + std, color=colors.get(variant), alpha=0.2)
-        ax.set(title=env_id, xlabel="environment steps", ylabel="average return (deterministic)")
-        ax.legend()
+            for row, key in enumerate(("timesteps", "wall_s")):
+                if key not in runs[0]["curve"][0]:
+                    continue
+                x = np.mean([[c[key] for c in r["curve"][:n]] for r in runs], axis=0)  # seeds' mean time per point
+                ax = axes[row, column]
+                ax.plot(x, mean, color=colors.get(variant), label=f"{variant} ({len(runs)} seeds)")
+                ax.fill_between(x, mean - std, mean + std, color=colors.get(variant), alpha=0.2)
+        axes[0, column].set(title=env_id, xlabel="environment steps", ylabel="average return (deterministic)")
+        axes[1, column].set(title=env_id, xlabel="wall-clock seconds (mean over seeds)", ylabel="average return")
+        axes[0, column].legend()
     fig.tight_layout()
     fig.savefig(png, dpi=100)
 

@@ -29,6 +29,9 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
     shared = [command.split(" --env ")[1].split(" -f ")[0] for command in (ppo["command"], pevfa["command"])]
     assert shared[0].replace("_ppo_", "_") == shared[1].replace("_pevfa-opr_", "_")
     assert "| ppo | 2 |" in stdout and "| pevfa-opr | 2 |" in stdout and "95 % CI" in stdout
+    # per second too: each run's CPU time and each evaluation's wall-clock time
+    assert ppo["cpu_time_s"] > 0 and 0 < ppo["curve"][0]["wall_s"] < ppo["curve"][1]["wall_s"] <= ppo["wall_time_s"]
+    assert "Per second (wall-clock budget: ppo's mean run" in stdout and "| pevfa-opr |" in stdout.split("Per second")[1]
     assert (tmp_path / "curves.png").stat().st_size > 0
     # finished runs are skipped on a second call
     again = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0",
@@ -42,6 +45,12 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
     speed = json.loads((tmp_path / "CartPole-v1_warmup512.json").read_text())
     assert len(speed["ppo_steps_per_s"]) == len(speed["pevfa_steps_per_s"]) == 2 and speed["ratio_median"] > 0
     assert set(speed["pevfa_shares"]) >= {"rollout", "on-policy update", "history update"}
+    log = _run(str(ROOT / "benchmarks" / "fast_path.py"), "--algo", "ppo_pevfa", "a2c_pevfa", "--env", "CartPole-v1",
+               "--warmup", "256", "--repeats", "1", "--rollouts", "1", "--out", str(tmp_path / "fast.json"),
+               cwd=ROOT)  # fmt: skip
+    fast = json.loads((tmp_path / "fast.json").read_text())
+    assert [r["algo"] for r in fast] == ["ppo_pevfa", "a2c_pevfa"] and "| ppo_pevfa | CartPole-v1 |" in log
+    assert all(r["rollout_sb3_ms_per_step"]["median"] > 0 and r["update_fast_ms_per_step"]["median"] > 0 for r in fast)
     _run(str(ROOT / "benchmarks" / "encoder_cost.py"), "--env", "CartPole-v1", "--policies", "1", "3", "--repeats", "2",
          "--out", str(tmp_path / "encoder.json"), cwd=ROOT)  # fmt: skip
     rows = json.loads((tmp_path / "encoder.json").read_text())["rows"]

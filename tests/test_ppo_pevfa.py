@@ -458,7 +458,7 @@ def test_a_nan_actor_stops_the_run_at_once(env_id, fast_path):
     model.learn(64)
     with th.no_grad():
         model.policy.action_net.weight[0, 0] = float("nan")
-    with pytest.raises(ValueError, match="Expected parameter (loc|logits)"):
+    with pytest.raises(ValueError, match=r"Expected parameter (loc|logits)"):
         model.learn(64, reset_num_timesteps=False)
 
 
@@ -469,8 +469,8 @@ def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():
         model.policy.value_net.output.bias.fill_(float("inf"))
     encoder = module_parameters(model.policy.representation)
     model._history_credit = 4 * model.history_train_freq
-    with pytest.raises(ValueError, match="historical value loss is (nan|inf)"):
+    with pytest.raises(ValueError, match=r"historical value loss is (nan|inf)"):
         model._train_on_history()
-    with pytest.raises(ValueError, match="critic-first epochs is (nan|inf)"):
+    with pytest.raises(ValueError, match=r"critic-first epochs is (nan|inf)"):
         model._train_critic_on_rollout()
     assert th.equal(module_parameters(model.policy.representation), encoder)  # no step spread it
