@@ -125,14 +125,14 @@ def test_same_seed_same_run(representation):
 
 @pytest.mark.parametrize("update_order", ["joint", "critic_first"])
 def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
-    """Model + history + RNG states saved: learning on continues as without the interruption.
+    """Model + history + RNG states saved: learning on continues bit for bit as without the interruption.
 
-    SB3's load resets the environment (seeded with the model's seed), so the reference run does the same.
-    Equal up to float round-off: torch's CPU kernels may round differently for differently aligned buffers
-    (SB3's own PPO shows the same ~1e-9 differences after a load)."""
+    SB3's load resets the environment (seeded with the model's seed), so the reference run does the same. The
+    environments are created seeded: created with ``seed=None`` the two runs are not bit-identical (measured: up to
+    6e-8 joint, 2e-4 critic-first)."""
 
     def make_env():
-        return make_vec_env("Pendulum-v1", n_envs=1)
+        return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
 
     kwargs = dict(representation="spr", update_order=update_order, **FAST)
     reference = PPOPeVFA("MlpPolicy", make_env(), **kwargs)
@@ -147,13 +147,13 @@ def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
     resumed.load_history(tmp_path / "history")
     resumed.learn(192, reset_num_timesteps=False)
     assert resumed.history.policy_ids == reference.history.policy_ids
-    np.testing.assert_allclose(resumed.history.samples()[0], reference.history.samples()[0], atol=1e-3)
-    error = np.abs(_final_state(resumed) - _final_state(reference)).max()
-    # resuming without the history gives a run further away
+    for got, want in zip(resumed.history.samples(), reference.history.samples()):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(_final_state(resumed), _final_state(reference))
+    # resuming without the history is another run
     no_history = PPOPeVFA.load(tmp_path / "model", env=make_env())
     no_history.learn(192, reset_num_timesteps=False)
-    # the tolerance separates the two: resumed runs fall inside it, a run without the history does not
-    assert error < 1e-3 < np.abs(_final_state(no_history) - _final_state(reference)).max()
+    assert not np.array_equal(_final_state(no_history), _final_state(reference))
 
 
 def test_value_loss_trains_encoder_and_not_actor():
