@@ -8,7 +8,6 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, Schedule
 
-from sb3_pevfa.pevfa import fast_path
 from sb3_pevfa.pevfa.algorithm import PeVFAAlgorithm
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, action_space_errors_as_type_errors, pevfa_policy_kwargs
 from sb3_pevfa.ppo_pevfa.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, PeVFAActorCriticPolicy
@@ -51,9 +50,9 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param history_batch_size: Samples per historical critic update (paper: 64)
     :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them
     :param history_learning_starts: Environment steps before historical updates start (paper: 5k)
-    :param fast_path: Critic values batched after each rollout (the actor alone acts), a lean PPO update loop and
-        foreach gradient clipping (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float
-        round-off; False runs SB3's own ``collect_rollouts`` and ``PPO.train``
+    :param fast_path: Critic values batched after each rollout, the actor alone acting
+        (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
+        SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -143,10 +142,3 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
 
     def _rollout_critic_schedule(self) -> tuple[int, int]:
         return self.n_epochs, self.batch_size
-
-    def _train_actor_critic(self) -> None:
-        if self.fast_path:
-            self.policy.set_training_mode(True)
-            fast_path.train_ppo(self)
-        else:
-            PPO.train(self)
