@@ -118,7 +118,7 @@ def test_bad_representation_arguments():
             make_representation("opr", layout, BOX_OBS, policy.action_space, embedding_dim=dim)
     with pytest.raises(ValueError, match="takes no representation_kwargs"):
         make_representation("rpr", layout, BOX_OBS, policy.action_space, layer_arch=(4,))
-    with pytest.raises(TypeError):
+    with pytest.raises(ValueError, match=r"representation_kwargs of 'opr' \['unknown'\], valid choices: \['layer_arch'"):
         make_representation("opr", layout, BOX_OBS, policy.action_space, unknown=1)
     with pytest.raises(ValueError, match="subsample"):
         make_representation("spr", layout, BOX_OBS, policy.action_space, subsample=0.0)
