@@ -6,8 +6,9 @@ objective parameters, of the history's targets and observations and of the recor
 path (``fast_path=False``) reproduced them bit for bit; the fast path within 2e-8 (relative): Gaussian actions are
 now drawn by torch.distributions instead of the same formula written out, which rounds differently. One later fix
 moves ``spr_cl_aux`` by up to 9e-8 on both paths: the CL / AUX modules' own gradients are cleared after their
-steps, so they no longer enter the next PPO update's gradient-norm clip. The tolerance (1e-6) leaves room for
-other CPUs' round-off only.
+steps, so they no longer enter the next PPO update's gradient-norm clip. The tolerance (1e-5, over 100x what
+those round-off-sized changes gave) leaves room for other CPUs' kernels only; breaking the history updates moves
+every configuration far outside it.
 """
 
 import json
@@ -71,4 +72,4 @@ def test_reproduces_the_numbers_recorded_before_the_redesign(name, fast_path):
     got = reference_numbers(name, fast_path)
     assert got["n_policies"] == expected["n_policies"] and got["n_samples"] == expected["n_samples"]
     for key in expected:
-        assert got[key] == pytest.approx(expected[key], rel=1e-6), key
+        assert got[key] == pytest.approx(expected[key], rel=1e-5), key
