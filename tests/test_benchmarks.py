@@ -5,6 +5,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 ROOT = pathlib.Path(__file__).parents[1]
 
 
@@ -50,7 +52,12 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
                cwd=ROOT)  # fmt: skip
     fast = json.loads((tmp_path / "fast.json").read_text())
     assert [r["algo"] for r in fast] == ["ppo_pevfa", "a2c_pevfa"] and "| ppo_pevfa | CartPole-v1 |" in log
-    assert all(r["rollout_sb3_ms_per_step"]["median"] > 0 and r["update_fast_ms_per_step"]["median"] > 0 for r in fast)
+    # --rollouts 1: one rollout per measurement, 2048 steps for PPO and 5 for A2C (their defaults)
+    assert [r["steps_per_measurement"] for r in fast] == [2048, 5]
+    for r in fast:
+        for piece in ("rollout", "update"):
+            sb3, quick = (r[f"{piece}_{path}_ms_per_step"]["median"] for path in ("sb3", "fast"))
+            assert sb3 > 0 and quick > 0 and r[f"{piece}_saved_ms_per_step"] == pytest.approx(sb3 - quick)
     _run(str(ROOT / "benchmarks" / "encoder_cost.py"), "--env", "CartPole-v1", "--policies", "1", "3", "--repeats", "2",
          "--out", str(tmp_path / "encoder.json"), cwd=ROOT)  # fmt: skip
     rows = json.loads((tmp_path / "encoder.json").read_text())["rows"]

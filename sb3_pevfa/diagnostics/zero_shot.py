@@ -9,19 +9,9 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import obs_as_tensor
 
-from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy, state_dim
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, batch_size, record_policy, rows, state_dim
 
 PolicyLike = ActorCriticPolicy | BaseAlgorithm | str | pathlib.Path | dict | np.ndarray
-
-
-def _batch_size(observations) -> int:
-    return len(next(iter(observations.values()))) if isinstance(observations, dict) else len(observations)
-
-
-def _take(observations, index: np.ndarray):
-    return (
-        {key: value[index] for key, value in observations.items()} if isinstance(observations, dict) else observations[index]
-    )
 
 
 def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
@@ -39,7 +29,7 @@ def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
         n_pairs = model.policy.n_state_action_pairs
         probe = model.history.sample_observations(n_pairs) if n_pairs else None
         if n_pairs and probe is None:  # empty history: probe at the given observations
-            probe = _take(observations, np.resize(np.arange(_batch_size(observations)), n_pairs))
+            probe = rows(observations, np.resize(np.arange(batch_size(observations)), n_pairs))
         return record_policy(policy, layout, probe, np.zeros(model.policy.code_dim))
     if isinstance(policy, np.ndarray):
         representation = model.policy.representation

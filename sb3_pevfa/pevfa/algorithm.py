@@ -38,7 +38,7 @@ from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, 
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
-from sb3_pevfa.pevfa.records import PolicyRecord
+from sb3_pevfa.pevfa.records import PolicyRecord, rows
 
 SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
 
@@ -169,7 +169,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         loss.backward()
         for param in self._shared_params:
             param.grad = None  # Adam skips it: the actor's outputs, and so the rollout's log-probabilities, stay valid
-        th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=self.fast_path or None)
+        th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=True)
         self.policy.optimizer.step()
         return value
 
@@ -237,7 +237,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             indices = np.random.permutation(len(returns))
             for start in range(0, len(returns), batch_size):
                 index = indices[start : start + batch_size]
-                batch = fast_path.rows(observations, index)
+                batch = rows(observations, index)
                 loss = F.mse_loss(self.policy.predict_values(batch).flatten(), returns[index])
                 losses.append(self._critic_step(loss, "value loss of the critic-first epochs"))
         return losses

@@ -5,7 +5,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
-from sb3_pevfa.pevfa.records import ActorLayout, has_image
+from sb3_pevfa.pevfa.records import ActorLayout, has_image, rows
 
 
 class PolicyHistoryCallback(BaseCallback):
@@ -66,11 +66,7 @@ class PolicyHistoryCallback(BaseCallback):
 
     def _on_rollout_end(self) -> None:
         buffer = self.model.rollout_buffer
-        first_obs = (
-            {k: v[0] for k, v in buffer.observations.items()}
-            if isinstance(buffer.observations, dict)
-            else buffer.observations[0]
-        )
+        first_obs = rows(buffer.observations, 0)  # the envs' observations when the rollout started
         start = self.model.num_timesteps - buffer.buffer_size * buffer.n_envs
         policy_id = self.recorder.record(self.model.policy, first_obs, num_timesteps=start)
         self.recorder.add_rollout(buffer, policy_id, self._episode_returns)

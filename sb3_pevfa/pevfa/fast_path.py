@@ -21,6 +21,8 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pevfa.pevfa.records import batch_size, rows
+
 #: Observations per batched critic pass (bounds the memory of image rollouts)
 VALUE_CHUNK = 4096
 
@@ -29,11 +31,6 @@ def _stack(observations: list) -> np.ndarray | dict[str, np.ndarray]:
     if isinstance(observations[0], dict):
         return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
     return np.stack(observations)
-
-
-def rows(obs: PyTorchObs, index: slice | th.Tensor | np.ndarray) -> PyTorchObs:
-    """The rows ``index`` of a batch of observations (a tensor or a dict of them)."""
-    return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
 
 
 def flat_observations(buffer: RolloutBuffer | DictRolloutBuffer, device: th.device, env_major: bool) -> PyTorchObs:
@@ -55,9 +52,8 @@ def flat_observations(buffer: RolloutBuffer | DictRolloutBuffer, device: th.devi
 
 def predict_values(policy: ActorCriticPolicy, obs: PyTorchObs) -> th.Tensor:
     """Critic values of a large batch, in chunks of :data:`VALUE_CHUNK`, ``(batch,)``."""
-    n = len(next(iter(obs.values())) if isinstance(obs, dict) else obs)
     with th.no_grad():
-        chunks = [policy.predict_values(rows(obs, slice(i, i + VALUE_CHUNK))) for i in range(0, n, VALUE_CHUNK)]
+        chunks = [policy.predict_values(rows(obs, slice(i, i + VALUE_CHUNK))) for i in range(0, batch_size(obs), VALUE_CHUNK)]
     return th.cat(chunks).flatten()
 
 

@@ -396,9 +396,8 @@ class PolicyHistory:
             loaded.add_record({name: arrays[f"{prefix}/{name}"][i] for name in RECORD_FIELDS}, **info)
             mask = arrays["sample/policy_ids"] == policy_id
             if mask.any():
-                observations = {name: arrays[f"sample/{name}"][mask] for name in self._obs_specs()}
-                obs = observations["obs"] if self._obs_keys is None else {k: observations[f"obs/{k}"] for k in self._obs_keys}
-                loaded.add_samples(obs, arrays["sample/targets"][mask], policy_id)
+                observations = self._observations({name: arrays[f"sample/{name}"][mask] for name in self._obs_specs()})
+                loaded.add_samples(observations, arrays["sample/targets"][mask], policy_id)
         loaded._next_id = meta["next_id"]
         loaded.rng.bit_generator.state = meta["rng_state"]
         self.__dict__.update(loaded.__dict__)

@@ -5,11 +5,7 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa.pevfa.history import ObsBatch, PolicyHistory
-from sb3_pevfa.pevfa.records import ActorLayout, record_policy
-
-
-def _rows(obs: ObsBatch, index: np.ndarray) -> ObsBatch:
-    return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
+from sb3_pevfa.pevfa.records import ActorLayout, batch_size, record_policy, rows
 
 
 class PolicyRecorder:
@@ -35,8 +31,7 @@ class PolicyRecorder:
         if observations is not None:
             return observations
         # Nothing recorded yet (first policy): probe at the fallback observations (the envs' current ones).
-        n_rows = len(next(iter(fallback.values())) if isinstance(fallback, dict) else fallback)
-        return _rows(fallback, self.history.rng.integers(n_rows, size=n_pairs))
+        return rows(fallback, self.history.rng.integers(batch_size(fallback), size=n_pairs))
 
     def record(self, policy: ActorCriticPolicy, fallback_obs: ObsBatch, **info: int | float) -> int:
         """Record ``policy`` unless it equals the latest record; returns the id of its record.

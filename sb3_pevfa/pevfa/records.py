@@ -100,6 +100,16 @@ class ActorLayout:
         return rows, log_std
 
 
+def batch_size(obs: np.ndarray | th.Tensor | dict) -> int:
+    """Number of observations in a batch (an array or tensor, or a dict of them)."""
+    return len(next(iter(obs.values())) if isinstance(obs, dict) else obs)
+
+
+def rows(obs: np.ndarray | th.Tensor | dict, index: int | slice | np.ndarray | th.Tensor) -> np.ndarray | th.Tensor | dict:
+    """The rows ``index`` of a batch of observations (an array or tensor, or a dict of them)."""
+    return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
+
+
 def state_dim(observation_space: spaces.Space) -> int:
     """Size of a flattened, preprocessed observation (one-hot for discrete spaces)."""
     return int(spaces.utils.flatdim(observation_space))
@@ -160,7 +170,7 @@ def record_policy(
         with th.no_grad():
             obs_tensor = obs_as_tensor(probe_obs, policy.device)
             if policy.use_sde:
-                policy.reset_noise(len(next(iter(obs_tensor.values())) if isinstance(obs_tensor, dict) else obs_tensor))
+                policy.reset_noise(batch_size(obs_tensor))
             sampled = policy.get_distribution(obs_tensor).get_actions(deterministic=False)
             states = flatten_observations(obs_tensor, observation_space).cpu().numpy().astype(np.float32)
         actions = sampled.reshape(len(states), -1).cpu().numpy().astype(np.float32)
