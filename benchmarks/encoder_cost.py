@@ -43,12 +43,13 @@ def main() -> None:
         encoder = policy.representation
         row = {"representation": name, "parameters": sum(p.numel() for p in encoder.parameters()), "ms": {}}
         for n in args.policies:
-            pairs = n * policy.n_state_action_pairs
-            actions = np.stack([model.action_space.sample() for _ in range(pairs)]).astype(np.float32)
+            pairs = n * policy.n_recorded_pairs
+            action_dim = policy.behaviour_actions.shape[1]
+            actions = np.array([model.action_space.sample() for _ in range(pairs)], np.float32).reshape(pairs, action_dim)
             data = PolicyRecord(
                 th.randn(n, policy.layout.n_params),
-                th.randn(n, policy.n_state_action_pairs, policy.behaviour_states.shape[1]),
-                th.as_tensor(actions).reshape(n, policy.n_state_action_pairs, -1),
+                th.randn(n, policy.n_recorded_pairs, policy.behaviour_states.shape[1]),
+                th.as_tensor(actions).reshape(n, policy.n_recorded_pairs, action_dim),
                 th.rand(n, policy.code_dim),
             )
             trainable = any(p.requires_grad for p in encoder.parameters())

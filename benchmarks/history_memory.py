@@ -15,7 +15,6 @@ import numpy as np
 import torch as th
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.pevfa.records import record_policy
 
 
 def main() -> None:
@@ -34,9 +33,9 @@ def main() -> None:
     rows, steps = [], 0
     for checkpoint in sorted(args.steps):
         while steps < checkpoint:
-            probe = history.sample_observations(policy.n_state_action_pairs)
-            probe = observations[: policy.n_state_action_pairs] if probe is None else probe
-            policy_id = history.add_record(record_policy(policy, policy.layout, probe, rng.uniform(-1, 1, policy.code_dim)))
+            with th.no_grad():
+                next(policy.action_net.parameters()).add_(1e-3)  # another policy: the recorder skips unchanged ones
+            policy_id = model.recorder.record(policy, observations)
             history.add_samples(observations, rng.normal(size=rollout), policy_id)
             steps += rollout
         rows.append(

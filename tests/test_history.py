@@ -1,3 +1,5 @@
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -216,3 +218,46 @@ def test_load_checks_every_layer_and_the_spaces(tmp_path):
     with pytest.raises(ValueError, match="observation_space: file has"):
         history_of(a, bounded).load(tmp_path / "h")
     history_of(a).load(tmp_path / "h")  # the same layout and spaces load
+
+
+@pytest.mark.parametrize(
+    "representation, objectives, pairs",
+    [("opr", (), 0), ("rpr", (), 0), ("random", (), 0), ("spr", (), 200), ("opr", ("aux",), 200), ("spr", ("cl",), 200)],
+)
+def test_records_hold_pairs_only_where_something_reads_them(representation, objectives, pairs):
+    from sb3_pevfa import PPOPeVFA
+
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, representation_objectives=objectives,
+                     n_steps=64, batch_size=32, n_epochs=1, history_learning_starts=0, seed=0)  # fmt: skip
+    assert model.policy.n_state_action_pairs == 200  # what was asked, as saved with the model
+    model.learn(128)
+    records = model.history.records(model.history.policy_ids)
+    assert records["states"].shape == (3, pairs, 3) and records["actions"].shape == (3, pairs, 1)
+    assert model.history.signature["n_state_action_pairs"] == pairs
+    assert model.policy.behaviour_states.shape == (pairs, 3)
+
+
+def test_max_nbytes_counts_a_full_history():
+    history = PolicyHistory(gym.spaces.Box(0, 255, (8, 8, 3), np.uint8), gym.spaces.Discrete(2), n_params=10,
+                            n_state_action_pairs=0, buffer_size=100, max_policies=7)  # fmt: skip
+    # a sample: 192 uint8 + float32 target + int64 id; a record: 10 float32 parameters
+    assert history.max_nbytes == 100 * (192 + 4 + 8) + 7 * 40
+    for _ in range(10):
+        history.add_record({"params": np.zeros(10, np.float32), "states": np.zeros((0, 192), np.float32),
+                            "actions": np.zeros((0, 1), np.float32), "codes": np.zeros(0, np.float32)})  # fmt: skip
+        history.add_samples(np.zeros((30, 8, 8, 3), np.uint8), np.zeros(30), history.latest_policy_id)
+    assert history.nbytes == history.max_nbytes
+
+
+def test_a_history_that_can_grow_past_gigabytes_is_announced():
+    from stable_baselines3.common.envs import FakeImageEnv
+
+    from sb3_pevfa import PPOPeVFA
+
+    env = FakeImageEnv(screen_height=84, screen_width=84, n_channels=4, discrete=True)
+    with pytest.warns(UserWarning, match=r"can grow to 5\.4 GiB \(history_buffer_size=200000"):
+        PPOPeVFA("CnnPolicy", env, n_steps=64, batch_size=32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        PPOPeVFA("CnnPolicy", env, n_steps=64, batch_size=32, history_buffer_size=20_000)
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr")

@@ -43,7 +43,8 @@ def test_dict_observations(representation):
     model.learn(192)
     obs, _, _ = model.history.sample(8)
     assert set(obs) == {"angle", "speed"}
-    assert model.history.records([0])["states"].shape == (1, 200, 3)
+    # Dict keys flattened into one state of 3; OPR records no pairs (nothing reads them)
+    assert model.history.records([0])["states"].shape == (1, 200 if representation == "spr" else 0, 3)
 
 
 @pytest.mark.parametrize("representation", ["opr", "spr"])
@@ -125,7 +126,7 @@ def test_same_seed_same_run(representation):
 
 @pytest.mark.parametrize("update_order", ["joint", "critic_first"])
 def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
-    """Model + history + RNG states saved: learning on continues bit for bit as without the interruption.
+    """Model + history saved, RNG states restored: learning on continues bit for bit as without the interruption.
 
     SB3's load resets the environment (seeded with the model's seed), so the reference run does the same. The
     environments are created seeded: created with ``seed=None`` the two runs are not bit-identical (measured: up to
@@ -143,7 +144,7 @@ def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
     reference.env.seed(reference.seed)
     reference.learn(192, reset_num_timesteps=False)
 
-    resumed = PPOPeVFA.load(tmp_path / "model", env=make_env())
+    resumed = PPOPeVFA.load(tmp_path / "model", env=make_env(), restore_rng_state=True)
     resumed.load_history(tmp_path / "history")
     resumed.learn(192, reset_num_timesteps=False)
     assert resumed.history.policy_ids == reference.history.policy_ids
@@ -151,9 +152,34 @@ def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
         np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(_final_state(resumed), _final_state(reference))
     # resuming without the history is another run
-    no_history = PPOPeVFA.load(tmp_path / "model", env=make_env())
+    no_history = PPOPeVFA.load(tmp_path / "model", env=make_env(), restore_rng_state=True)
     no_history.learn(192, reset_num_timesteps=False)
     assert not np.array_equal(_final_state(no_history), _final_state(reference))
+
+
+@pytest.mark.parametrize("seed", [0, None])
+def test_load_leaves_the_callers_rng_as_sb3_does(tmp_path, seed):
+    """By default load does not bring the saving process's global RNG states: after it, the caller's RNGs are where
+    SB3's own load leaves them, whatever the saving process had drawn."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **{**FAST, "seed": seed})
+    model.learn(64)
+    th.manual_seed(1), np.random.seed(1)
+    model.save(tmp_path / "a")
+    th.manual_seed(2), np.random.seed(2)
+    model.save(tmp_path / "b")
+
+    def after_load(name, **kwargs):
+        th.manual_seed(3), np.random.seed(3)
+        PPOPeVFA.load(tmp_path / name, **kwargs)
+        return th.rand(3), np.random.rand(3)
+
+    for got, want in zip(after_load("a"), after_load("b")):
+        np.testing.assert_array_equal(got, want)
+    # opt-in: the saving process's states
+    th.manual_seed(1), np.random.seed(1)
+    expected = th.rand(3), np.random.rand(3)
+    for got, want in zip(after_load("a", restore_rng_state=True), expected):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_value_loss_trains_encoder_and_not_actor():
@@ -380,11 +406,18 @@ def test_policy_pickles_copies_and_deepcopies_like_sb3():
     model.learn(128)
     obs = th.zeros(3, 3)
     policy = model.policy
+    # as after a PPO step: the latest action distribution holds autograd tensors (SB3's policy then fails deepcopy)
+    policy.evaluate_actions(obs, th.zeros(3, 1))
+    assert policy.action_dist.distribution.loc.grad_fn is not None
     policy.set_training_mode(False)
     expected = policy.predict_values(obs).detach()
+    with th.no_grad():
+        actions = policy._predict(obs, deterministic=True)
     for clone in (pickle.loads(pickle.dumps(policy)), copy.deepcopy(policy)):
         clone.set_training_mode(False)
         np.testing.assert_array_equal(clone.predict_values(obs).detach(), expected)
+        with th.no_grad():
+            np.testing.assert_array_equal(clone._predict(obs, deterministic=True), actions)
         # a copy's frozen critic is its own
         with clone.critic_frozen():
             assert not clone.critic_trainable and policy.critic_trainable
@@ -453,13 +486,28 @@ def test_log_interval_defaults_to_the_base_algorithms():
 @pytest.mark.parametrize("fast_path", [True, False])
 @pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
 def test_a_nan_actor_stops_the_run_at_once(env_id, fast_path):
-    """As SB3: the action distribution's argument check names the NaN, on both code paths (no silent NaN run)."""
+    """No silent NaN run: a NaN in the actor is refused when the policy is recorded, before it acts; a NaN that
+    reaches the action distribution (from an observation) fails its argument check, as in SB3 PPO, on both paths."""
     model = PPOPeVFA("MlpPolicy", env_id, fast_path=fast_path, **FAST)
     model.learn(64)
     with th.no_grad():
         model.policy.action_net.weight[0, 0] = float("nan")
-    with pytest.raises(ValueError, match=r"Expected parameter (loc|logits)"):
+    with pytest.raises(ValueError, match=r"non-finite policy record field 'params': nan"):
         model.learn(64, reset_num_timesteps=False)
+
+    class NaNAfter(gym.Wrapper):
+        steps = 0
+
+        def step(self, action):
+            observation, *rest = self.env.step(action)
+            self.steps += 1
+            return (observation * np.nan if self.steps > 40 else observation), *rest
+
+    for algo, kwargs in ((PPO, dict(n_steps=64, batch_size=32, seed=0)), (PPOPeVFA, dict(**FAST, fast_path=fast_path))):
+        model = algo("MlpPolicy", NaNAfter(gym.make(env_id)), **kwargs)
+        with pytest.raises(ValueError, match=r"Expected parameter (loc|logits)"):
+            model.learn(64)
+        assert model.num_timesteps == 41  # stopped at the first action that would read a NaN observation
 
 
 def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():

@@ -1,11 +1,17 @@
 """SB3's generic algorithm checks (save/load, predict, callbacks, determinism, spaces, dict and image
-observations, train/eval mode) with PPOPeVFA in place of PPO."""
+observations, train/eval mode) with PPOPeVFA in place of PPO, each on both code paths: the fast path (the default)
+and SB3's own rollout (``fast_path=False``).
+
+By design PPOPeVFA differs from SB3 PPO in its TensorBoard run name (``PPOPeVFA``) and in its ``pevfa/*`` logs;
+with no representation and no history it trains exactly as SB3 PPO (``test_without_history_it_trains_as_sb3_ppo``).
+"""
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import FAST
+from conftest import AS_SB3, FAST, sb3_twin_runs
+from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import (
     CallbackList,
     CheckpointCallback,
@@ -13,6 +19,7 @@ from stable_baselines3.common.callbacks import (
     StopTrainingOnMaxEpisodes,
     StopTrainingOnRewardThreshold,
 )
+from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import (
     FakeImageEnv,
@@ -26,6 +33,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import get_device
+from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import REPRESENTATIONS, PPOPeVFA
 from sb3_pevfa.ppo_pevfa import MlpPolicy
@@ -38,6 +46,46 @@ SPACE_ENVS = {
     # a matrix-shaped Box: actions keep the action space's shape on every code path
     "box2x2": lambda: _ObservationSpaceEnv(gym.spaces.Box(-1, 1, (3,), np.float32), gym.spaces.Box(-1, 1, (2, 2), np.float32)),
 }
+
+
+@pytest.fixture(autouse=True, params=[True, False], ids=["fast", "sb3"])
+def code_path(request, monkeypatch):
+    """Every test of this file on both rollout paths (the tests build their models with ``**FAST``)."""
+    monkeypatch.setitem(FAST, "fast_path", request.param)
+    return request.param
+
+
+TWIN_ENVS = {
+    "cartpole": (lambda: make_vec_env("CartPole-v1", n_envs=1, seed=0), "MlpPolicy"),
+    "pendulum-2envs-vecnormalize": (lambda: VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0)), "MlpPolicy"),
+    "multidiscrete": (lambda: make_vec_env(lambda: IdentityEnvMultiDiscrete(2), seed=0), "MlpPolicy"),
+    "multibinary": (lambda: make_vec_env(lambda: IdentityEnvMultiBinary(2), seed=0), "MlpPolicy"),
+    "box2x2": (lambda: make_vec_env(SPACE_ENVS["box2x2"], seed=0), "MlpPolicy"),
+    "dict-with-image": (lambda: make_vec_env(lambda: SimpleMultiObsEnv(random_start=False), seed=0), "MultiInputPolicy"),
+}
+
+
+@pytest.mark.parametrize("env_name", sorted(TWIN_ENVS))
+def test_without_history_it_trains_as_sb3_ppo(env_name):
+    """No representation, no history, SB3's critic shape: the same weights as SB3 PPO after three updates, on every
+    action and observation space, with VecNormalize and two envs."""
+    make_env, policy = TWIN_ENVS[env_name]
+    common = dict(n_steps=32, batch_size=16, n_epochs=2, seed=0)
+    arch = dict(net_arch=dict(pi=[16], vf=[16]))
+    np.random.seed(0)  # SimpleMultiObsEnv draws its observations from the global RNG when it is built
+    ppo = PPO(policy, make_env(), policy_kwargs=arch, **common)
+    np.random.seed(0)
+    pevfa = PPOPeVFA(policy, make_env(), policy_kwargs={**arch, "critic_head_arch": []}, fast_path=FAST["fast_path"],
+                     **common, **AS_SB3)  # fmt: skip
+    sb3_twin_runs(ppo, pevfa, 3 * 32 * ppo.n_envs)
+    if isinstance(ppo.env, VecNormalize):
+        np.testing.assert_allclose(pevfa.env.obs_rms.mean, ppo.env.obs_rms.mean, rtol=1e-6)
+        np.testing.assert_allclose(pevfa.env.ret_rms.var, ppo.env.ret_rms.var, rtol=1e-6)
+
+
+def test_env_checker_passes_on_the_envs_of_these_tests():
+    for make in (*SPACE_ENVS.values(), lambda: _ObservationSpaceEnv(gym.spaces.MultiDiscrete([3, 4]))):
+        check_env(make(), warn=False)
 
 
 def _saved_and_loaded(model, path):
@@ -171,7 +219,8 @@ class _ObservationSpaceEnv(gym.Env):
 
     def reset(self, seed=None, options=None):
         super().reset(seed=seed)
-        self.observation_space.seed(seed)
+        if seed is not None:  # reseeding with None at every episode end would draw fresh OS entropy
+            self.observation_space.seed(seed)
         return self.observation_space.sample(), {}
 
     def step(self, action):

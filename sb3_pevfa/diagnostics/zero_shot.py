@@ -26,7 +26,7 @@ def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
         layout = ActorLayout.from_policy(policy)
         if layout != model.policy.layout:
             raise ValueError(f"The policy's actor {layout} differs from the model's {model.policy.layout}")
-        n_pairs = model.policy.n_state_action_pairs
+        n_pairs = model.policy.n_recorded_pairs
         probe = model.history.sample_observations(n_pairs) if n_pairs else None
         if n_pairs and probe is None:  # empty history: probe at the given observations
             probe = rows(observations, np.resize(np.arange(batch_size(observations)), n_pairs))

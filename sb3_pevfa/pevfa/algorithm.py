@@ -18,6 +18,7 @@ One iteration, as :meth:`PeVFAAlgorithm.train` reads:
 import io
 import math
 import pathlib
+import warnings
 from typing import Any, TypeVar
 
 import numpy as np
@@ -41,6 +42,9 @@ from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, rows
 
 SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
+
+#: A history that can grow beyond this many bytes is announced with a warning at construction
+HISTORY_MEMORY_WARNING_BYTES = 4 * 2**30
 
 
 class PeVFAAlgorithm(OnPolicyAlgorithm):
@@ -98,7 +102,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             self.observation_space,
             self.action_space,
             self.policy.layout.n_params,
-            n_state_action_pairs=self.policy.n_state_action_pairs,
+            n_state_action_pairs=self.policy.n_recorded_pairs,
             code_dim=self.policy.code_dim,
             buffer_size=self.history_buffer_size,
             max_policies=self.history_max_policies,
@@ -106,6 +110,13 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             representation=self.representation,
             layout=self.policy.layout,
         )
+        if self.history.max_nbytes > HISTORY_MEMORY_WARNING_BYTES:
+            warnings.warn(
+                f"The policy history can grow to {self.history.max_nbytes / 2**30:.1f} GiB (history_buffer_size="
+                f"{self.history_buffer_size} samples, history_max_policies={self.history_max_policies} records); lower "
+                "them, or n_state_action_pairs, to bound it",
+                stacklevel=3,  # the user's constructor call
+            )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
         self._critic_params = list(self.policy.critic_parameters())
         critic_ids = {id(p) for p in self._critic_params}
@@ -332,7 +343,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.load_history(path)
 
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
-        # The global RNG states travel with the model so that a resumed run continues as an uninterrupted one.
+        # The global RNG states travel with the model: load(..., restore_rng_state=True) continues from them.
         self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
         try:
             super().save(path, exclude=exclude, include=include)
@@ -340,10 +351,20 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             del self._rng_states
 
     @classmethod
-    def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, **kwargs: Any):  # type: ignore[override]
+    def load(  # type: ignore[override]
+        cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any
+    ):
+        """SB3's ``load``. The global torch / numpy RNGs are left as SB3 leaves them (it seeds them with the model's
+        seed, if any, while it rebuilds the model).
+
+        :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
+            on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have
+        """
         model = super().load(path, *args, **kwargs)
         rng_states = model.__dict__.pop("_rng_states", None)
-        if rng_states is not None and model.seed is not None:
+        if restore_rng_state:
+            if rng_states is None:
+                raise ValueError(f"{path} holds no RNG states (saved by another version): load without restore_rng_state")
             th.set_rng_state(rng_states["torch"])
             np.random.set_state(rng_states["numpy"])
         return model

@@ -313,6 +313,14 @@ class PolicyHistory:
         """Memory held by the history, in bytes."""
         return self._samples.nbytes + self._record_nbytes
 
+    @property
+    def max_nbytes(self) -> int:
+        """Memory the history can grow to, in bytes: ``buffer_size`` samples and ``max_policies`` records."""
+        sample = sum(int(np.prod(shape, dtype=np.int64)) * dtype.itemsize for shape, dtype in self._samples.specs.values())
+        pair = state_dim(self.observation_space) + get_action_dim(self.action_space)
+        record = 4 * (self.n_params + self.n_state_action_pairs * pair + self.code_dim)  # float32 fields
+        return self.buffer_size * sample + self.max_policies * record
+
     def __len__(self) -> int:
         return self.n_samples
 

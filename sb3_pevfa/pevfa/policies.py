@@ -1,5 +1,6 @@
 """Actor-critic policies whose critic is a PeVFA V(s, chi_pi)."""
 
+import copy
 import inspect
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -48,7 +49,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param representation: One of ``opr``, ``spr``, ``rpr``, ``random``, ``stats``, ``none``
     :param embedding_dim: Size of chi for ``opr``, ``spr`` and ``random``
     :param representation_kwargs: Keyword arguments of the representation (e.g. ``layer_arch``, ``subsample``)
-    :param n_state_action_pairs: State-action pairs recorded per policy (SPR's data)
+    :param n_state_action_pairs: State-action pairs recorded per policy, where something reads them (SPR, the AUX
+        objective); other configurations record none (:attr:`n_recorded_pairs` is 0)
     :param critic_embedding_arch: Embedding stream of the critic (paper: [64])
     :param critic_head_arch: Layers after the streams are combined (paper: [128])
     :param critic_combine: ``concat`` (paper) or ``product``
@@ -145,11 +147,14 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         if self.ortho_init:
             self.value_net.init_weights(self.init_weights)
         self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
+        #: Pairs each record holds: none where neither the representation nor an objective reads them
+        reads_pairs = self.representation.uses_state_action_pairs or "aux" in self.representation_objectives
+        self.n_recorded_pairs = self.n_state_action_pairs if reads_pairs else 0
         # The behaviour policy's record travels with the policy's state dict (empty fields stay out of it).
         behaviour = {
             "behaviour_params": th.zeros(self.layout.n_params),
-            "behaviour_states": th.zeros(self.n_state_action_pairs, state_dim(self.observation_space)),
-            "behaviour_actions": th.zeros(self.n_state_action_pairs, get_action_dim(self.action_space)),
+            "behaviour_states": th.zeros(self.n_recorded_pairs, state_dim(self.observation_space)),
+            "behaviour_actions": th.zeros(self.n_recorded_pairs, get_action_dim(self.action_space)),
             "behaviour_codes": th.zeros(self.code_dim),
             "has_behaviour": th.zeros(()),  # 1.0 once a record was set (a float: SB3's tests randomise state dicts)
         }
@@ -318,6 +323,20 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         result = super().load_state_dict(*args, **kwargs)
         self.clear_embedding_cache()
         return result
+
+    def __getstate__(self) -> dict[str, Any]:
+        """What pickle and ``copy.deepcopy`` take: the module without the action distribution of the latest call.
+
+        That distribution is a by-product (each call builds a new one) and, after a training step, holds tensors of the
+        autograd graph, which torch refuses to deepcopy: SB3's own policies cannot be deepcopied after ``learn()``."""
+        state = dict(super().__getstate__())
+        action_dist = copy.copy(self.action_dist)
+        for name, value in vars(action_dist).items():
+            values = value if isinstance(value, list) else [value]
+            if any(isinstance(v, th.distributions.Distribution) or (isinstance(v, th.Tensor) and v.grad_fn) for v in values):
+                setattr(action_dist, name, None)
+        state["action_dist"] = action_dist
+        return state
 
     def set_training_mode(self, mode: bool) -> None:
         """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs)."""
