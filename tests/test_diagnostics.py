@@ -7,7 +7,7 @@ import torch as th
 from conftest import FAST, read_progress
 from stable_baselines3.common.logger import configure
 
-from sb3_pevfa import PPOPeVFA
+from sb3_pevfa import PolicyRecord, PPOPeVFA
 from sb3_pevfa.diagnostics import (
     LocalGeneralizationCallback,
     plot_embedding_maps,
@@ -95,16 +95,28 @@ def test_local_generalization_callback_and_plot(tmp_path):
 def test_read_scalars_from_tensorboard(tmp_path):
     pytest.importorskip("tensorboard")
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", tensorboard_log=str(tmp_path), **FAST)
+    model.set_logger(configure(str(tmp_path / "both"), ["csv", "tensorboard"]))
     model.learn(256, callback=LocalGeneralizationCallback())
-    scalars = read_scalars(next(tmp_path.iterdir()))
-    assert np.isfinite(scalars["pevfa/local_gen/pevfa_before"]).sum() >= 3
+    # every iteration, also the last one, whose dump shares its step with the one at the end of training
+    from_events, from_csv = read_scalars(tmp_path / "both"), read_scalars(tmp_path / "both" / "progress.csv")
+    for key in ("timesteps", "pevfa_before", "vfa_after"):
+        values = from_events[f"pevfa/local_gen/{key}"]
+        expected = from_csv[f"pevfa/local_gen/{key}"]
+        np.testing.assert_allclose(values[np.isfinite(values)], expected[np.isfinite(expected)], rtol=1e-6)
+    timesteps = from_events["pevfa/local_gen/timesteps"]
+    assert timesteps[np.isfinite(timesteps)].tolist() == [64, 128, 192, 256]
     plot_local_generalization(next(tmp_path.iterdir()), tmp_path / "tb.png")
 
 
 def test_embedding_maps(tmp_path):
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(640)
     ids, embeddings = policy_embeddings(model)
-    assert embeddings.shape == (len(ids), 64) and len(ids) == model.history.n_policies
+    assert ids.tolist() == model.history.policy_ids
+    model.policy.set_training_mode(False)
+    with th.no_grad():
+        one_by_one = [model.policy.embed(PolicyRecord.from_numpy(model.history.records([i]))) for i in ids]
+    np.testing.assert_allclose(embeddings, th.cat(one_by_one).numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(policy_embeddings(model, batch_size=3)[1], embeddings, rtol=1e-5, atol=1e-6)  # chunked
     assert any("episode_return" in model.history.record_info(int(i)) for i in ids)
     assert plot_embedding_maps(model, tmp_path / "maps.png").stat().st_size > 10_000
     with pytest.raises(ValueError, match="none"):
@@ -125,6 +137,10 @@ def test_zero_shot_values(tmp_path, representation):
     other.save(tmp_path / "other")
     from_path = predict_policy_values(model, tmp_path / "other.zip", obs)
     assert from_path.shape == (5,) and not np.allclose(from_path, expected)
+    if representation != "spr":  # deterministic records: the saved policy's values, however it is passed
+        np.testing.assert_allclose(from_path, predict_policy_values(model, other, obs), rtol=1e-6)
+        flat = other.policy.layout.flatten(other.policy).detach().numpy()
+        np.testing.assert_allclose(from_path, predict_policy_values(model, flat, obs), rtol=1e-6)
     if representation != "spr":
         np.testing.assert_allclose(predict_policy_values(model, model, obs), expected, rtol=1e-5)
         np.testing.assert_allclose(predict_policy_values(model, latest["params"], obs), expected, rtol=1e-5)

@@ -2,7 +2,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import FAST, read_progress
+from conftest import FAST, actor_parameters, module_parameters, read_progress
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa import PPOPeVFA
@@ -142,16 +142,26 @@ def test_objectives_in_training(env_id, representation, objectives, csv_logger):
         **FAST,
     )
     model.set_logger(csv_logger[0])
-    encoder_before = [p.detach().clone() for p in model.policy.representation.parameters()]
     model.learn(256)
     last = read_progress(csv_logger[1])[-1]
     for name in objectives:
         assert int(last[f"pevfa/{name}_updates"]) == 4
+    # the objectives' own steps (one iteration's worth) move the encoder and leave the critic head and the actor alone
+    policy = model.policy
+    policy.set_training_mode(True)
+    encoder, head = module_parameters(policy.representation), module_parameters(policy.value_net)
+    actor = actor_parameters(policy)
+    metrics = model._train_objectives()
+    for name in objectives:
+        assert len(metrics[f"{name}_updates"]) == 4
+    assert not th.equal(module_parameters(policy.representation), encoder)
+    assert th.equal(module_parameters(policy.value_net), head) and th.equal(actor_parameters(policy), actor)
+    # the logged metrics are the means of the steps' values
     if "cl" in objectives:
         assert 0 <= float(last["pevfa/cl_accuracy"]) <= 1 and float(last["pevfa/cl_loss"]) > 0
+        assert {len(metrics["cl_loss"]), len(metrics["cl_accuracy"])} == {4}
     if "aux" in objectives:
-        assert np.isfinite(float(last["pevfa/aux_nll"]))
-    assert any(not th.equal(a, b) for a, b in zip(encoder_before, model.policy.representation.parameters()))
+        assert len(metrics["aux_nll"]) == 4 and np.isfinite(float(last["pevfa/aux_nll"]))
 
 
 def test_save_load_with_both_objectives(tmp_path):
@@ -185,4 +195,6 @@ def test_objectives_with_gsde(representation):
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", use_sde=True, representation=representation,
                      representation_objectives=("cl", "aux"), objective_kwargs=objective_kwargs, **FAST)  # fmt: skip
     model.learn(256)
-    assert model.policy.cl_optimizer.state and model.policy.aux_optimizer.state  # both took steps
+    # both took 4 steps in each of iterations 2-4 (the first has a single recorded policy: nothing to contrast)
+    for optimizer in (model.policy.cl_optimizer, model.policy.aux_optimizer):
+        assert {int(state["step"]) for state in optimizer.state.values()} == {12}

@@ -53,8 +53,14 @@ def test_vectorized_and_normalized_envs(representation):
     model = PPOPeVFA("MlpPolicy", env, representation=representation, **{**FAST, "n_steps": 32})
     model.learn(384)
     assert model.history.n_samples == 384 and model.history.n_policies == 4
-    # samples keep the (normalised) observations the policy saw
-    assert np.abs(model.history.samples()[0]).max() <= env.clip_obs
+    # the last rollout's samples are the (normalised) observations the policy saw and the rollout's value targets; the
+    # buffer is env-major after PPO's update, the history keeps the rollout's step-major order
+    buffer = model.rollout_buffer
+    obs, targets, ids = model.history.samples()
+    np.testing.assert_array_equal(obs[-128:], buffer.observations.reshape(4, 32, 3).swapaxes(0, 1).reshape(-1, 3))
+    np.testing.assert_array_equal(targets[-128:], buffer.returns.reshape(4, 32).T.reshape(-1))
+    assert set(ids[-128:]) == {model.history.policy_ids[-2]}  # the policy that collected them (the last is the final)
+    assert not np.allclose(np.hypot(obs[:, 0], obs[:, 1]), 1.0, atol=1e-2)  # not Pendulum's raw (cos, sin)
 
 
 def _predictions(model, obs):
@@ -210,15 +216,24 @@ def test_critic_frozen_for_actor_update_in_critic_first_order(csv_logger):
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order="critic_first", **FAST)
     model.set_logger(csv_logger[0])
     model.learn(128)
-    critic_before = module_parameters(model.policy.value_net)
-    with model.policy.critic_frozen():
-        model.policy.set_training_mode(True)
-        values, _, _ = model.policy.evaluate_actions(*next(model.rollout_buffer.get(32))[:2])
+    policy = model.policy
+
+    def critic():
+        return th.cat([p.detach().flatten().clone() for p in policy.critic_parameters()])
+
+    critic_before, actor_before = critic(), actor_parameters(policy)
+    with policy.critic_frozen():
+        policy.set_training_mode(True)
+        values, _, _ = policy.evaluate_actions(*next(model.rollout_buffer.get(32))[:2])
         assert not values.requires_grad
-        # SB3's PPO update in this context does not move the critic
+        # SB3's PPO update in this context moves the actor and leaves the whole critic (streams, head, encoder)
         PPO.train(model)
-    assert th.equal(module_parameters(model.policy.value_net), critic_before)
-    assert "pevfa/critic_value_loss" in read_progress(csv_logger[1])[-1]
+    assert th.equal(critic(), critic_before) and not th.equal(actor_parameters(policy), actor_before)
+    # the critic's own epochs on the rollout: n_epochs x (64 / 32) steps, logged as their mean loss
+    losses = model._train_critic_on_rollout()
+    assert len(losses) == model.n_epochs * 2 and not th.equal(critic(), critic_before)
+    logged = [float(row["pevfa/critic_value_loss"]) for row in read_progress(csv_logger[1])[1:]]
+    assert len(logged) == 1 and logged[0] > 0
 
 
 def test_critic_first_recomputes_advantages_with_updated_critic():
@@ -226,15 +241,30 @@ def test_critic_first_recomputes_advantages_with_updated_critic():
     model.learn(64)
     _, callback = model._setup_learn(64, reset_num_timesteps=False)
     model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
-    values_before = model.rollout_buffer.values.copy()
+    buffer = model.rollout_buffer
+    values_before, advantages_before = buffer.values.copy(), buffer.advantages.copy()
     model._train_critic_on_rollout()
     model._recompute_advantages()
-    assert not np.allclose(model.rollout_buffer.values, values_before)
+    assert not np.allclose(buffer.values, values_before)
     model.policy.set_training_mode(False)
     with th.no_grad():
-        observations = flat_observations(model.rollout_buffer, model.device, env_major=False)
+        observations = flat_observations(buffer, model.device, env_major=False)
         expected = model.policy.predict_values(observations).numpy().reshape(values_before.shape)
-    np.testing.assert_allclose(model.rollout_buffer.values, expected, rtol=1e-6)
+        last = model.policy.predict_values(th.as_tensor(model._last_obs)).numpy().flatten()
+    np.testing.assert_allclose(buffer.values, expected, rtol=1e-6)
+    # GAE written out, with the updated critic's values and its value of the state after the rollout
+    gamma, lam, gae = model.gamma, model.gae_lambda, 0.0
+    advantages = np.zeros_like(buffer.values)
+    for t in reversed(range(model.n_steps)):
+        if t == model.n_steps - 1:
+            not_done, next_value = 1.0 - model._last_episode_starts, last
+        else:
+            not_done, next_value = 1.0 - buffer.episode_starts[t + 1], buffer.values[t + 1]
+        gae = buffer.rewards[t] + gamma * next_value * not_done - buffer.values[t] + gamma * lam * not_done * gae
+        advantages[t] = gae
+    np.testing.assert_allclose(buffer.advantages, advantages, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(buffer.returns, advantages + buffer.values, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(buffer.advantages, advantages_before)
 
 
 def test_value_target_lambda_gives_monte_carlo_returns():
@@ -279,13 +309,61 @@ def test_none_is_a_conventional_critic_through_the_same_path():
     assert head.embedding_net is None and model.policy.representation.embedding_dim == 0
     assert len(list(model.policy.representation.parameters())) == 0
     model.learn(128)
+    policy = model.policy
+    policy.set_training_mode(False)
+    obs = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(5)]))
+    with th.no_grad():
+        plain = head.output(head.hidden(policy.mlp_extractor.forward_critic(obs)))
+        assert th.equal(policy.predict_values(obs), plain)
+        assert th.equal(policy.predict_values(obs, th.zeros(5, 0)), plain)
 
 
 def test_history_bounds_during_training():
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", history_buffer_size=100, history_max_policies=3, **FAST)
     model.learn(320)
-    assert model.history.n_samples == 100 and model.history.n_policies == 3
-    assert set(model.history.samples()[2].tolist()) <= set(model.history.policy_ids)
+    # five rollouts (policies 0-4) and the final record 5: the newest three stay, and the newest 100 samples
+    assert model.history.policy_ids == [3, 4, 5]
+    _, targets, ids = model.history.samples()
+    assert ids.tolist() == [3] * 36 + [4] * 64
+    np.testing.assert_array_equal(targets[-64:], model.rollout_buffer.returns.flatten())
+
+
+def test_sampled_history_batches_are_the_samples_of_their_policies():
+    """Each batch of the historical updates: samples of earlier policies only (never the one that collected the
+    current rollout), each with the observation and value target its policy's rollout gave, and a loss computed with
+    the chi of that very policy (``random`` codes: chi far apart for every policy, so a mix-up shows in the loss)."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="random", **FAST)
+    rollouts, batches = {}, []
+    add_rollout, sample, critic_step = model.recorder.add_rollout, model.history.sample, model._critic_step
+
+    def spy_rollout(buffer, policy_id, returns):
+        rollouts[policy_id] = (buffer.observations.reshape(-1, 3).copy(), buffer.returns.reshape(-1).copy())
+        add_rollout(buffer, policy_id, returns)
+
+    def spy_sample(n, exclude_policy=None):
+        batch = sample(n, exclude_policy=exclude_policy)
+        batches.append([exclude_policy, batch, None])
+        return batch
+
+    def spy_step(loss, what):
+        if what == "historical value loss":  # the loss the batch gave, recomputed from the records
+            _, (obs, targets, ids), _ = batches[-1]
+            with th.no_grad():
+                chi = th.cat([model.policy.embed(PolicyRecord.from_numpy(model.history.records([i]))) for i in ids])
+                values = model.policy.predict_values(th.as_tensor(obs), chi).flatten()
+                batches[-1][2] = (loss.item(), th.mean((values - th.as_tensor(targets)) ** 2).item())
+        return critic_step(loss, what)
+
+    model.recorder.add_rollout, model.history.sample, model._critic_step = spy_rollout, spy_sample, spy_step
+    model.learn(320)
+    assert [batch is None for _, batch, _ in batches] == [True] + [False] * 16  # 4 per update from the second on
+    for exclude, (obs, targets, ids), (loss, recomputed) in batches[1:]:
+        assert exclude in rollouts and exclude not in ids and set(ids) <= set(rollouts)
+        for o, target, policy_id in zip(obs, targets, ids):
+            rollout_obs, rollout_targets = rollouts[policy_id]
+            (row,) = np.flatnonzero((rollout_obs == o).all(axis=1))
+            assert rollout_targets[row] == target
+        assert loss == pytest.approx(recomputed, rel=1e-5)
 
 
 @pytest.mark.parametrize("algo", [PPO, A2C])
@@ -299,8 +377,13 @@ def test_history_callback_on_plain_sb3(tmp_path, algo):
     # the final record is the trained policy
     live = ActorLayout.from_policy(model.policy).flatten(model.policy).numpy()
     np.testing.assert_array_equal(history.records([history.latest_policy_id])["params"][0], live)
+    # the last rollout's samples with their value targets
+    np.testing.assert_array_equal(history.samples()[1][-32:], model.rollout_buffer.returns.flatten())
     history.save(tmp_path / "h")
-    PolicyHistory(model.observation_space, model.action_space, history.n_params, 10).load(tmp_path / "h")
+    loaded = PolicyHistory(model.observation_space, model.action_space, history.n_params, 10).load(tmp_path / "h")
+    assert loaded.policy_ids == history.policy_ids
+    for got, want in zip(loaded.samples(), history.samples()):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_bad_input_errors():
@@ -347,8 +430,15 @@ def test_bad_input_errors():
 
 def test_policy_without_record_uses_live_parameters():
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
-    obs = th.zeros(3, 3)
-    assert model.policy.predict_values(obs).shape == (3, 1)
+    obs = th.ones(3, 3)
+    policy = model.policy
+    policy.set_training_mode(False)
+    live = PolicyRecord(policy.layout.flatten(policy)[None], th.zeros(1, 0, 3), th.zeros(1, 0, 1), th.zeros(1, 0))
+    with th.no_grad():
+        np.testing.assert_allclose(policy.predict_values(obs), policy.predict_values(obs, policy.embed(live)), rtol=1e-6)
+        before = policy.predict_values(obs).clone()
+        policy.action_net.bias.add_(1.0)  # not cached: the values follow the live actor
+        assert not th.allclose(policy.predict_values(obs), before)
     spr = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
     with pytest.raises(RuntimeError, match="recorded policy"):
         spr.policy.predict_values(obs)

@@ -103,7 +103,8 @@ def test_action_spaces_predict_and_save_load(tmp_path, space, representation):
     assert env.action_space.contains(action) and state is None
     batch = np.stack([obs, obs])
     actions, _ = model.predict(batch, deterministic=True)
-    assert actions.shape[0] == 2
+    assert actions.shape == (2, *env.action_space.shape)
+    np.testing.assert_allclose(actions, np.stack([action, action]), rtol=1e-6)  # batched: round-off only
     loaded = _saved_and_loaded(model, tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(batch, deterministic=True)[0], actions)
     evaluate_policy(loaded, make_vec_env(SPACE_ENVS[space], n_envs=1), n_eval_episodes=1)
@@ -145,8 +146,10 @@ def test_callbacks(tmp_path):
     assert checkpoint.num_timesteps == 128
     # a stopping callback ends training early; the functional-callback form works too
     stop = StopTrainingOnMaxEpisodes(max_episodes=2)
+    n_samples = model.history.n_samples
     model.learn(10_000, callback=[stop])
-    assert model.num_timesteps < 256 + 10_000
+    assert stop.n_episodes == 2 and model.num_timesteps <= 2 * 500  # two CartPole episodes, then it stopped
+    assert model.history.n_samples == n_samples + 64 * (model.num_timesteps // 64)  # an unfinished rollout is not kept
     calls = []
     model.learn(64, callback=lambda _locals, _globals: calls.append(1) or True)
     assert len(calls) == 64
@@ -204,10 +207,15 @@ def test_gsde_and_separate_features_extractor(share_features_extractor):
         policy_kwargs=dict(share_features_extractor=share_features_extractor, log_std_init=-1.0),
         **FAST,
     )
-    # gSDE: the log-std is a matrix, flattened into the layout
+    # gSDE: the log-std is a matrix, flattened into the layout, last in each record
     assert model.policy.layout.log_std_shape == (64, 1)
     model.learn(128)
     assert get_device(model.device).type == "cpu"
+    history = model.history
+    np.testing.assert_array_equal(history.records([0])["params"][0][-64:], -1.0)  # log_std_init
+    latest = history.records([history.latest_policy_id])["params"][0][-64:]
+    np.testing.assert_array_equal(latest, model.policy.log_std.detach().flatten().numpy())
+    assert not np.array_equal(latest, -np.ones(64))
 
 
 class _ObservationSpaceEnv(gym.Env):
@@ -378,9 +386,14 @@ def test_critic_only_steps_leave_a_shared_cnn_extractor_and_the_actor_alone(repr
         with th.no_grad():
             return model.policy.get_distribution(obs).distribution.logits.clone()
 
+    def critic():
+        return th.cat([p.detach().flatten().clone() for p in model.policy.critic_parameters()])
+
     before, extractor = actor_outputs(), [p.detach().clone() for p in model.policy.features_extractor.parameters()]
+    critic_before = critic()
     model._history_credit = 4 * model.history_train_freq
-    assert len(model._train_on_history()) > 0
+    assert len(model._train_on_history()) == 6  # credit 4 * 16 plus one rollout's 32 steps, one step per 16
     model._train_critic_on_rollout()
+    assert not th.equal(critic(), critic_before)  # the critic did train
     assert th.equal(actor_outputs(), before)
     assert all(th.equal(a, b) for a, b in zip(model.policy.features_extractor.parameters(), extractor))

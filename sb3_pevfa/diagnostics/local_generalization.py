@@ -159,14 +159,25 @@ def read_scalars(log: str | pathlib.Path) -> dict[str, np.ndarray]:
         raise FileNotFoundError(f"Neither progress.csv nor TensorBoard events in {log}")
     accumulator = EventAccumulator(str(events[0].parent))
     accumulator.Reload()
-    scalars = {}
-    steps = sorted({event.step for tag in accumulator.Tags()["scalars"] for event in accumulator.Scalars(tag)})
-    position = {step: i for i, step in enumerate(steps)}
-    scalars["time/total_timesteps"] = np.array(steps, dtype=float)
-    for tag in accumulator.Tags()["scalars"]:
-        values = np.full(len(steps), np.nan)
-        for event in accumulator.Scalars(tag):
-            values[position[event.step]] = event.value
+
+    # One row per dump, as in progress.csv: two dumps at the same step (the last iteration's and the one at the end
+    # of training) are two rows, the k-th event of a tag at a step going to that step's k-th row.
+    def keyed(tag: str) -> list[tuple[tuple[int, int], float]]:
+        seen: dict[int, int] = {}
+        rows = []
+        for event in sorted(accumulator.Scalars(tag), key=lambda event: event.wall_time):
+            seen[event.step] = seen.get(event.step, -1) + 1
+            rows.append(((event.step, seen[event.step]), event.value))
+        return rows
+
+    tags = {tag: keyed(tag) for tag in accumulator.Tags()["scalars"]}
+    keys = sorted({key for rows in tags.values() for key, _ in rows})
+    position = {key: i for i, key in enumerate(keys)}
+    scalars = {"time/total_timesteps": np.array([step for step, _ in keys], dtype=float)}
+    for tag, rows in tags.items():
+        values = np.full(len(keys), np.nan)
+        for key, value in rows:
+            values[position[key]] = value
         scalars[tag] = values
     return scalars
 
