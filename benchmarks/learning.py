@@ -50,6 +50,10 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-paper": dict(
         update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
     ),
+    # the critic's embedding stream (issue: chi saturated a Tanh stream): the paper's ReLU, and a layer-normalised chi
+    "pevfa-opr-relu": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU)"),
+    "pevfa-opr-relu-layernorm": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='layernorm')"),
+    "pevfa-opr-layernorm": dict(policy_kwargs="dict(chi_normalization='layernorm')"),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }

@@ -39,7 +39,7 @@ from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, 
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
-from sb3_pevfa.pevfa.records import PolicyRecord, rows
+from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
 
 SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
 
@@ -295,7 +295,22 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.logger.record("pevfa/policy_id", self.history.latest_policy_id)
         if self.policy.representation.embedding_dim > 0:
             self.policy.set_training_mode(False)
-            self.logger.record("pevfa/embedding_norm", self.policy.behaviour_embedding().norm().item())
+            chi = self.policy.behaviour_embedding()
+            self.logger.record("pevfa/embedding_norm", chi.norm().item())
+            self.logger.record("pevfa/embedding_saturated_fraction", self.policy.value_net.saturated_fraction(chi))
+            self.logger.record("pevfa/value_chi_gradient", self.value_chi_gradient())
+
+    def value_chi_gradient(self, n_states: int = 256) -> float:
+        """Mean over (up to ``n_states``) states of the rollout of ``||dV(s, chi)/dchi||`` at the behaviour policy's
+        chi: how much the critic's value reacts to the policy embedding (0: it cannot tell policies apart)."""
+        observations = fast_path.flat_observations(self.rollout_buffer, self.device, env_major=False)
+        observations = rows(observations, slice(0, n_states))
+        with th.no_grad():
+            chi = self.policy.behaviour_embedding()
+        chi = chi.expand(batch_size(observations), -1).clone().requires_grad_(True)
+        values = self.policy.predict_values(observations, chi)
+        (gradient,) = th.autograd.grad(values.sum(), chi)
+        return gradient.norm(dim=1).mean().item()
 
     def learn(
         self: SelfPeVFAAlgorithm,

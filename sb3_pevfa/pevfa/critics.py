@@ -7,6 +7,10 @@ from torch import nn
 
 #: Valid values of ``critic_combine``.
 CRITIC_COMBINES = ("concat", "product")
+#: Valid values of ``chi_normalization``: chi as the representation gives it, or layer-normalised (bounded scale)
+CHI_NORMALIZATIONS = ("none", "layernorm")
+#: An embedding-stream unit whose activation has a slope below this at the behaviour chi counts as saturated
+SATURATION_SLOPE = 0.1
 
 
 class PeVFAValueHead(nn.Module):
@@ -21,6 +25,9 @@ class PeVFAValueHead(nn.Module):
     :param embedding_arch: Layers of the embedding stream
     :param head_arch: Layers after the streams are combined
     :param combine: ``"concat"`` or ``"product"`` (element-wise; the embedding stream then ends at ``latent_dim``)
+    :param activation_fn: Activation of the embedding stream and the head (paper: ReLU)
+    :param chi_normalization: ``"layernorm"`` normalises chi (``nn.LayerNorm``) before the embedding stream, so its
+        scale cannot grow into the activations' flat ends; ``"none"`` (paper) reads chi as it is
     """
 
     def __init__(
@@ -31,16 +38,21 @@ class PeVFAValueHead(nn.Module):
         head_arch: list[int],
         combine: str = "concat",
         activation_fn: type[nn.Module] = nn.ReLU,
+        chi_normalization: str = "none",
     ):
         super().__init__()
         if combine not in CRITIC_COMBINES:
             raise ValueError(f"Unknown critic_combine {combine!r}, valid choices: {CRITIC_COMBINES}")
+        if chi_normalization not in CHI_NORMALIZATIONS:
+            raise ValueError(f"Unknown chi_normalization {chi_normalization!r}, valid choices: {CHI_NORMALIZATIONS}")
         if any(int(size) <= 0 for size in [*embedding_arch, *head_arch]):
             raise ValueError(f"Layer sizes must be positive, got embedding_arch={embedding_arch}, head_arch={head_arch}")
         self.embedding_dim = embedding_dim
         self.combine = combine
         combined_dim = latent_dim
         self.embedding_net: nn.Module | None = None
+        use_norm = chi_normalization == "layernorm" and embedding_dim > 0
+        self.chi_norm: nn.Module = nn.LayerNorm(embedding_dim) if use_norm else nn.Identity()
         if embedding_dim > 0:
             if combine == "product":
                 self.embedding_net = nn.Sequential(*create_mlp(embedding_dim, latent_dim, list(embedding_arch), activation_fn))
@@ -61,6 +73,25 @@ class PeVFAValueHead(nn.Module):
         """:param embedding: chi, ``(batch, embedding_dim)`` or ``(1, embedding_dim)`` (broadcast)."""
         if self.embedding_net is None:
             return self.output(self.hidden(latent_vf))
-        code = self.embedding_net(embedding).expand(latent_vf.shape[0], -1)
+        code = self.embedding_net(self.chi_norm(embedding)).expand(latent_vf.shape[0], -1)
         combined = latent_vf * code if self.combine == "product" else th.cat([latent_vf, code], dim=1)
         return self.output(self.hidden(combined))
+
+    @th.no_grad()
+    def saturated_fraction(self, embedding: th.Tensor) -> float:
+        """Fraction of the embedding stream's hidden units whose activation is flat at ``embedding`` (slope below
+        :data:`SATURATION_SLOPE`: ``|tanh| > 0.95``, or a ReLU at zero), where V hardly moves with chi."""
+        if self.embedding_net is None:
+            return 0.0
+        flat, total = 0, 0
+        x = self.chi_norm(embedding)
+        for module in self.embedding_net:
+            if isinstance(module, nn.Linear):
+                x = module(x)
+                continue
+            eps = 1e-3
+            slope = (module(x + eps) - module(x - eps)) / (2 * eps)
+            flat += int((slope.abs() < SATURATION_SLOPE).sum())
+            total += slope.numel()
+            x = module(x)
+        return flat / max(total, 1)

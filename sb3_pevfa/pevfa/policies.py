@@ -55,6 +55,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param critic_head_arch: Layers after the streams are combined (paper: [128])
     :param critic_combine: ``concat`` (paper) or ``product``
     :param critic_activation_fn: Activation of the embedding stream and head (default: ``activation_fn``)
+    :param chi_normalization: ``"none"`` (paper) or ``"layernorm"``: chi normalised before the embedding stream
     :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
     :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
         (see :mod:`sb3_pevfa.pevfa.objectives`)
@@ -79,6 +80,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         critic_head_arch: list[int] | tuple[int, ...] = (128,),
         critic_combine: str = "concat",
         critic_activation_fn: type[nn.Module] | None = None,
+        chi_normalization: str = "none",
         representation_objectives: tuple[str, ...] | list[str] = (),
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
@@ -117,6 +119,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.critic_head_arch = list(critic_head_arch)
         self.critic_combine = critic_combine
         self.critic_activation_fn = critic_activation_fn
+        self.chi_normalization = chi_normalization
         self.representation_objectives = tuple(representation_objectives)
         _check_objectives(self.representation_objectives, objective_kwargs or {})
         self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
@@ -143,6 +146,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             self.critic_head_arch,
             self.critic_combine,
             self.critic_activation_fn or self.activation_fn,
+            self.chi_normalization,
         )
         if self.ortho_init:
             self.value_net.init_weights(self.init_weights)
@@ -205,6 +209,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             critic_head_arch=self.critic_head_arch,
             critic_combine=self.critic_combine,
             critic_activation_fn=self.critic_activation_fn,
+            chi_normalization=self.chi_normalization,
             representation_objectives=self.representation_objectives,
             objective_kwargs=self.objective_kwargs,
         )
