@@ -198,3 +198,45 @@ def test_objectives_with_gsde(representation):
     # both took 4 steps in each of iterations 2-4 (the first has a single recorded policy: nothing to contrast)
     for optimizer in (model.policy.cl_optimizer, model.policy.aux_optimizer):
         assert {int(state["step"]) for state in optimizer.state.values()} == {12}
+
+
+@pytest.mark.parametrize("separate_pairs", [True, False])
+def test_spr_and_aux_read_pairs_of_their_own(separate_pairs):
+    """The paper keeps separate pairs for SPR and AUX: AUX then predicts the policy's actions at other states than
+    the ones chi was computed from, instead of partly reconstructing them."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", representation_objectives=("aux",),
+                     objective_kwargs={"aux": {**OBJECTIVE_FAST, "separate_pairs": separate_pairs}}, **FAST)  # fmt: skip
+    model.learn(128)
+    policy, aux = model.policy, model.policy.objectives["aux"]
+    records = PolicyRecord.from_numpy(model.history.records(model.history.policy_ids))
+    n = 200
+    assert records.states.shape[1] == policy.n_recorded_pairs == (2 * n if separate_pairs else n)
+    policy.set_training_mode(False)
+
+    def changed(part: slice) -> PolicyRecord:
+        states = records.states.clone()
+        states[:, part] += 1.0
+        return records._replace(states=states)
+
+    with th.no_grad():
+        chi = policy.embed(records)
+        # SPR's chi reads the first n pairs only
+        assert not th.allclose(policy.embed(changed(slice(0, n))), chi)
+        if separate_pairs:
+            assert th.equal(policy.embed(changed(slice(n, 2 * n))), chi)
+            assert not np.array_equal(records.states[:, :n], records.states[:, n:])  # probe states drawn apart
+
+        class FixedChi(th.nn.Module):  # AUX's decoder inputs without chi's dependence on the pairs
+            def forward(self, _records):
+                return chi
+
+        def aux_loss(data):
+            th.manual_seed(0)
+            return aux.loss(FixedChi(), data)[0].item()
+
+        # AUX decodes the second n pairs (separate) or SPR's own pairs
+        decoded = slice(n, 2 * n) if separate_pairs else slice(0, n)
+        other = slice(0, n) if separate_pairs else None
+        assert aux_loss(changed(decoded)) != aux_loss(records)
+        if other is not None:
+            assert aux_loss(changed(other)) == aux_loss(records)

@@ -135,9 +135,14 @@ class ActionPredictionObjective(RepresentationObjective):
     (MultiBinary).
 
     :param pairs_per_policy: State-action pairs per policy in a batch (paper: 16 policies x 16 pairs)
+    :param separate_pairs: With SPR, decode pairs of their own (the paper: records then hold twice the pairs, SPR
+        reads the first half, AUX the second), so AUX predicts behaviour rather than reconstruct what chi encodes;
+        False decodes the pairs SPR reads
     """
 
     name = "aux"
+    #: The pairs of each record this objective decodes (set by the policy that builds it)
+    pairs: slice = slice(None)
 
     def __init__(
         self,
@@ -150,8 +155,10 @@ class ActionPredictionObjective(RepresentationObjective):
         learning_rate: float = 1e-3,
         pairs_per_policy: int = 16,
         net_arch: tuple[int, ...] = (128, 128),
+        separate_pairs: bool = True,
     ):
         super().__init__(train_freq, learning_starts, batch_policies, learning_rate)
+        self.separate_pairs = bool(separate_pairs)
         if not isinstance(pairs_per_policy, int) or pairs_per_policy < 1:
             raise ValueError(f"aux pairs_per_policy must be a positive int, got {pairs_per_policy!r}")
         self.pairs_per_policy = pairs_per_policy
@@ -177,12 +184,13 @@ class ActionPredictionObjective(RepresentationObjective):
         return -distribution.log_prob(actions).mean()
 
     def loss(self, representation: PolicyRepresentation, records: PolicyRecord) -> tuple[th.Tensor, dict[str, float]]:
-        n_policies, n_pairs = records.states.shape[:2]
+        states, actions = records.states[:, self.pairs], records.actions[:, self.pairs]
+        n_policies, n_pairs = states.shape[:2]
         if n_pairs == 0:
             raise ValueError("objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0")
-        index = th.randint(n_pairs, (n_policies, self.pairs_per_policy), device=records.states.device)
-        states = th.gather(records.states, 1, index.unsqueeze(-1).expand(-1, -1, records.states.shape[-1]))
-        actions = th.gather(records.actions, 1, index.unsqueeze(-1).expand(-1, -1, records.actions.shape[-1]))
+        index = th.randint(n_pairs, (n_policies, self.pairs_per_policy), device=states.device)
+        states = th.gather(states, 1, index.unsqueeze(-1).expand(-1, -1, states.shape[-1]))
+        actions = th.gather(actions, 1, index.unsqueeze(-1).expand(-1, -1, actions.shape[-1]))
         loss = self.negative_log_likelihood(representation(records), states, actions)
         return loss, {"aux_nll": loss.item()}
 

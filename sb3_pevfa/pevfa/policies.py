@@ -151,9 +151,22 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         if self.ortho_init:
             self.value_net.init_weights(self.init_weights)
         self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
-        #: Pairs each record holds: none where neither the representation nor an objective reads them
-        reads_pairs = self.representation.uses_state_action_pairs or "aux" in self.representation_objectives
-        self.n_recorded_pairs = self.n_state_action_pairs if reads_pairs else 0
+        self.objectives = nn.ModuleDict(
+            {
+                name: make_objective(
+                    name, self.representation, self.observation_space, self.action_space, **self.objective_kwargs.get(name, {})
+                )
+                for name in self.representation_objectives
+            }
+        )
+        #: Pairs each record holds: none where neither the representation nor an objective reads them, twice
+        #: ``n_state_action_pairs`` where SPR and AUX read pairs of their own
+        n_pairs, aux = self.n_state_action_pairs, dict(self.objectives).get("aux")
+        reads_pairs = self.representation.uses_state_action_pairs or aux is not None
+        self.n_recorded_pairs = n_pairs if reads_pairs else 0
+        if self.representation.uses_state_action_pairs and aux is not None and aux.separate_pairs:
+            self.n_recorded_pairs = 2 * n_pairs
+            self.representation.pairs, aux.pairs = slice(0, n_pairs), slice(n_pairs, 2 * n_pairs)
         # The behaviour policy's record travels with the policy's state dict (empty fields stay out of it).
         behaviour = {
             "behaviour_params": th.zeros(self.layout.n_params),
@@ -164,14 +177,6 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         }
         for name, tensor in behaviour.items():
             self.register_buffer(name, tensor, persistent=tensor.numel() > 0)
-        self.objectives = nn.ModuleDict(
-            {
-                name: make_objective(
-                    name, self.representation, self.observation_space, self.action_space, **self.objective_kwargs.get(name, {})
-                )
-                for name in self.representation_objectives
-            }
-        )
         excluded = {id(p) for p in [*self.critic_parameters(), *self.objectives.parameters()]}
         actor_params = [p for p in self.parameters() if id(p) not in excluded]
         self.optimizer = self.optimizer_class(  # type: ignore[call-arg]

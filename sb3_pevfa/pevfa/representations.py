@@ -21,6 +21,8 @@ class PolicyRepresentation(nn.Module):
     uses_state_action_pairs: bool = False
     #: Reads a fixed random code per policy
     uses_codes: bool = False
+    #: The state-action pairs of each record it reads (set by the policy; see the AUX objective's ``separate_pairs``)
+    pairs: slice = slice(None)
 
     def __init__(self, embedding_dim: int):
         super().__init__()
@@ -130,7 +132,8 @@ class SurfacePolicyRepresentation(PolicyRepresentation):
 
     def forward(self, records: PolicyRecord, keep: float | None = None) -> th.Tensor:
         """:param keep: Fraction of pairs to keep (default: ``subsample`` in training mode, all in eval mode)."""
-        pairs = th.cat([records.states, encode_actions(records.actions, self.action_space)], dim=-1)
+        states, actions = records.states[:, self.pairs], records.actions[:, self.pairs]
+        pairs = th.cat([states, encode_actions(actions, self.action_space)], dim=-1)
         n_pairs = pairs.shape[1]
         if n_pairs == 0:
             raise ValueError("representation='spr' needs state-action pairs: n_state_action_pairs must be > 0")
