@@ -69,6 +69,8 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
         history_batch_size: int = 64,
         history_train_freq: int = 10,
         history_learning_starts: int = 5_000,
+        history_targets: str = "rollout",
+        history_target_refresh: int = 1,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,

@@ -109,6 +109,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             seed=self.seed,
             representation=self.representation,
             layout=self.policy.layout,
+            transitions=self.history_targets == "recomputed",
         )
         if self.history.max_nbytes > HISTORY_MEMORY_WARNING_BYTES:
             warnings.warn(
@@ -162,7 +163,9 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         else:
             complete = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
         if complete:
-            self.recorder.add_rollout(rollout_buffer, policy_id, self._rollout_episode_returns)
+            self.recorder.add_rollout(
+                rollout_buffer, policy_id, self._rollout_episode_returns, self._last_obs, self._last_episode_starts
+            )
         return complete
 
     def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
@@ -183,6 +186,29 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=True)
         self.policy.optimizer.step()
         return value
+
+    def _refresh_history_targets(self) -> int:
+        """``history_targets="recomputed"``: every ``history_target_refresh`` iterations, each historical sample's
+        target becomes the lambda-return of its own policy under the current critic, V(s, chi_k) at that policy's
+        chi (the latest policy's samples keep the rollout's returns: the on-policy update trains on those).
+        Returns the number of samples recomputed."""
+        iteration = self.num_timesteps // (self.n_steps * self.n_envs)
+        if self.history_targets != "recomputed" or iteration % self.history_target_refresh:
+            return 0
+        lam = self.gae_lambda if self.value_target_lambda is None else self.value_target_lambda
+        self.policy.set_training_mode(False)
+        fields = self.policy.representation.fields
+
+        def values(observations, policy_ids: np.ndarray) -> np.ndarray:
+            unique_ids, inverse = np.unique(policy_ids, return_inverse=True)
+            with th.no_grad():
+                chi = self.policy.embed(PolicyRecord.from_numpy(self.history.records(unique_ids, fields), self.device))
+            chi = chi[th.as_tensor(inverse, device=self.device)]
+            return fast_path.predict_values(self.policy, obs_as_tensor(observations, self.device), chi).cpu().numpy()
+
+        n = self.history.recompute_targets(values, self.gamma, lam, exclude_policy=self.history.latest_policy_id)
+        self.policy.set_training_mode(True)
+        return n
 
     def _train_on_history(self) -> list[float]:
         """Extra critic updates on the samples of historical policies (Algorithm 2, line 8)."""
@@ -272,6 +298,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         objective_metrics = self._train_objectives()
+        recomputed = self._refresh_history_targets()
         history_losses = self._train_on_history()
         for key, values in objective_metrics.items():
             self.logger.record(f"pevfa/{key}", len(values) if key.endswith("_updates") else float(np.mean(values)))
@@ -284,6 +311,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         else:
             self._train_actor_critic()
         self._record_pevfa_logs(history_losses)
+        if self.history_targets == "recomputed":
+            self.logger.record("pevfa/history_targets_recomputed", recomputed)
 
     def _record_pevfa_logs(self, history_losses: list[float]) -> None:
         self.logger.record("pevfa/history_updates", len(history_losses))

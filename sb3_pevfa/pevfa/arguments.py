@@ -11,6 +11,8 @@ from sb3_pevfa.pevfa.representations import REPRESENTATIONS
 
 #: Valid values of ``update_order``.
 UPDATE_ORDERS = ("joint", "critic_first")
+#: Valid values of ``history_targets``: the rollout's value targets, or lambda-returns recomputed with the current critic
+HISTORY_TARGETS = ("rollout", "recomputed")
 #: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
 PEVFA_ARGUMENTS = (
     "representation",
@@ -27,6 +29,8 @@ PEVFA_ARGUMENTS = (
     "history_batch_size",
     "history_train_freq",
     "history_learning_starts",
+    "history_targets",
+    "history_target_refresh",
     "fast_path",
 )
 #: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
@@ -72,7 +76,12 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
         raise ValueError(f"Unknown representation {representation!r}, valid choices: {REPRESENTATIONS}")
     if update_order not in UPDATE_ORDERS:
         raise ValueError(f"Unknown update_order {update_order!r}, valid choices: {UPDATE_ORDERS}")
-    positive = {name: arguments[name] for name in ("embedding_dim", "history_buffer_size", "history_max_policies")}
+    if arguments["history_targets"] not in HISTORY_TARGETS:
+        raise ValueError(f"Unknown history_targets {arguments['history_targets']!r}, valid choices: {HISTORY_TARGETS}")
+    positive = {
+        name: arguments[name]
+        for name in ("embedding_dim", "history_buffer_size", "history_max_policies", "history_target_refresh")
+    }
     positive["history_batch_size"] = arguments["history_batch_size"]
     non_negative = {
         name: arguments[name] for name in ("history_train_freq", "history_learning_starts", "n_state_action_pairs")

@@ -50,10 +50,16 @@ def flat_observations(buffer: RolloutBuffer | DictRolloutBuffer, device: th.devi
     return flat(buffer.observations)
 
 
-def predict_values(policy: ActorCriticPolicy, obs: PyTorchObs) -> th.Tensor:
-    """Critic values of a large batch, in chunks of :data:`VALUE_CHUNK`, ``(batch,)``."""
+def predict_values(policy: ActorCriticPolicy, obs: PyTorchObs, chi: th.Tensor | None = None) -> th.Tensor:
+    """Critic values of a large batch, in chunks of :data:`VALUE_CHUNK`, ``(batch,)``.
+
+    :param chi: One embedding per observation ``(batch, embedding_dim)``; default: the behaviour policy's"""
+    chunks = []
     with th.no_grad():
-        chunks = [policy.predict_values(rows(obs, slice(i, i + VALUE_CHUNK))) for i in range(0, batch_size(obs), VALUE_CHUNK)]
+        for i in range(0, batch_size(obs), VALUE_CHUNK):
+            part = slice(i, i + VALUE_CHUNK)
+            extra = () if chi is None else (chi[part],)
+            chunks.append(policy.predict_values(rows(obs, part), *extra))
     return th.cat(chunks).flatten()
 
 

@@ -6,6 +6,7 @@ import json
 import os
 import pathlib
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -13,13 +14,24 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 
 from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, state_dim
+from sb3_pevfa.pevfa.targets import lambda_returns
 
 #: Version of the file format written by :meth:`PolicyHistory.save`.
-HISTORY_FORMAT_VERSION = 2
-#: Versions :meth:`PolicyHistory.load` reads (1: records were called ``policy/<field>``).
-_READABLE_VERSIONS = (1, 2)
+HISTORY_FORMAT_VERSION = 3
+#: Versions :meth:`PolicyHistory.load` reads (1: records were called ``policy/<field>``; 2: no transitions).
+_READABLE_VERSIONS = (1, 2, 3)
+#: Signature entries that older files lack, and the value they then mean
+_SIGNATURE_DEFAULTS = {"transitions": False}
 
 ObsBatch = np.ndarray | dict[str, np.ndarray]
+
+
+def _rollout_tail(array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The last ``len(array)`` samples of a ``(n_steps, n_envs)`` rollout in its shape, zeros in front (an evicted
+    front: the lambda-return recursion runs backwards, so the kept samples do not read it)."""
+    out = np.zeros(int(np.prod(shape)), np.float32)
+    out[len(out) - len(array) :] = array
+    return out.reshape(shape)
 
 
 def _check_finite(array: np.ndarray, what: str) -> None:
@@ -103,6 +115,8 @@ class PolicyHistory:
     :param seed: Seed of the sampling RNG (the model passes its own seed)
     :param representation: Name of the representation this history feeds (checked on load)
     :param layout: The actor's parameter layout (every layer's shape is checked on load)
+    :param transitions: Also keep each sample's reward and episode start, and each rollout's last observations, so
+        that value targets can be recomputed (:meth:`recompute_targets`)
     """
 
     def __init__(
@@ -117,6 +131,7 @@ class PolicyHistory:
         seed: int | None = None,
         representation: str | None = None,
         layout: ActorLayout | None = None,
+        transitions: bool = False,
     ):
         for name, value in (("buffer_size", buffer_size), ("max_policies", max_policies)):
             if not isinstance(value, (int, np.integer)) or value <= 0:
@@ -134,6 +149,7 @@ class PolicyHistory:
         if layout is not None and layout.n_params != self.n_params:
             raise ValueError(f"n_params={n_params} does not match the actor layout's {layout.n_params}")
         self.layout = layout
+        self.transitions = bool(transitions)
         self.rng = np.random.default_rng(seed)
         self._obs_keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
         self.reset()
@@ -154,7 +170,12 @@ class PolicyHistory:
         specs = self._obs_specs()
         specs["targets"] = ((), np.dtype(np.float32))
         specs["policy_ids"] = ((), np.dtype(np.int64))
+        if self.transitions:
+            specs["rewards"] = ((), np.dtype(np.float32))
+            specs["episode_starts"] = ((), np.dtype(np.float32))
         self._samples = _Ring(specs, self.buffer_size)
+        #: per policy: the observations after its rollout and whether they start episodes (``transitions``)
+        self._bootstraps: dict[int, dict[str, np.ndarray]] = {}
         self._policies: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
         self._record_info: dict[int, dict[str, int | float]] = {}
         self._sample_counts: dict[int, int] = {}
@@ -177,6 +198,7 @@ class PolicyHistory:
             "action_space_details": str(self.action_space),
             "actor_linear_shapes": None if self.layout is None else [list(shape) for shape in self.layout.linear_shapes],
             "actor_log_std_shape": None if self.layout is None else list(self.layout.log_std_shape),
+            "transitions": self.transitions,
         }
 
     # ------------------------------------------------------------------ policies
@@ -225,6 +247,7 @@ class PolicyHistory:
             self._forget_samples(self._samples.drop_front(self._sample_counts[oldest]))
             self._record_nbytes -= sum(array.nbytes for array in self._policies[oldest].values())
             del self._policies[oldest], self._record_info[oldest], self._sample_counts[oldest]
+            self._bootstraps.pop(oldest, None)
         return policy_id
 
     def sample_policy_ids(self, n: int) -> np.ndarray:
@@ -256,9 +279,32 @@ class PolicyHistory:
         ids, counts = np.unique(dropped["policy_ids"], return_counts=True)
         for policy_id, count in zip(ids.tolist(), counts.tolist()):
             self._sample_counts[policy_id] -= count
+            if self._sample_counts[policy_id] == 0:
+                self._bootstraps.pop(policy_id, None)  # no sample left to bootstrap
 
-    def add_samples(self, observations: ObsBatch, targets: np.ndarray, policy_id: int) -> None:
-        """Append samples of one policy. Observations have a leading batch axis (any extra leading axes are flattened)."""
+    def add_samples(
+        self,
+        observations: ObsBatch,
+        targets: np.ndarray,
+        policy_id: int,
+        rewards: np.ndarray | None = None,
+        episode_starts: np.ndarray | None = None,
+        last_observations: ObsBatch | None = None,
+        last_episode_starts: np.ndarray | None = None,
+        rollout_shape: tuple[int, int] | None = None,
+    ) -> None:
+        """Append samples of one policy. Observations have a leading batch axis (any extra leading axes are flattened).
+
+        With ``transitions``, also the rollout's ``rewards`` and ``episode_starts`` ``(n_steps, n_envs)`` (the
+        observations in the same step-major order) and the ``last_observations`` / ``last_episode_starts`` of its
+        ``n_envs`` environments after the last step; ``rollout_shape`` (default: the rewards' shape) says which
+        rollout the samples end, if they are only its last steps."""
+        given = [x is not None for x in (rewards, episode_starts, last_observations, last_episode_starts)]
+        if any(given) != self.transitions or (self.transitions and not all(given)):
+            raise ValueError(
+                f"This history {'keeps' if self.transitions else 'does not keep'} transitions: pass rewards, "
+                "episode_starts, last_observations and last_episode_starts " + ("all" if self.transitions else "none")
+            )
         if policy_id not in self._policies:
             raise KeyError(f"Unknown policy id {policy_id}: record the policy first")
         if policy_id != self.latest_policy_id:
@@ -274,8 +320,30 @@ class PolicyHistory:
                 raise ValueError(f"{len(rows[name])} observations for {len(targets)} targets")
         rows["targets"] = targets
         rows["policy_ids"] = np.full(len(targets), policy_id, dtype=np.int64)
+        if self.transitions:
+            rewards = np.asarray(rewards, dtype=np.float32)
+            shape = tuple(int(n) for n in (rewards.shape if rollout_shape is None else rollout_shape))
+            if len(shape) != 2 or rewards.size != len(targets) or np.prod(shape) < len(targets):
+                raise ValueError(
+                    f"rewards must hold one value per sample ({len(targets)}) of a (n_steps, n_envs) rollout, got "
+                    f"rewards of shape {rewards.shape} and rollout_shape {rollout_shape}"
+                )
+            rows["rewards"], rows["episode_starts"] = rewards.reshape(-1), np.asarray(episode_starts, np.float32).reshape(-1)
+            bootstrap = {name: np.asarray(a, dtype) for name, a, (_, dtype) in self._obs_rows(last_observations)}
+            bootstrap["last_episode_starts"] = np.asarray(last_episode_starts, np.float32).reshape(-1)
+            for name, array in [("rewards", rows["rewards"]), *bootstrap.items()]:
+                _check_finite(array, name)
+            self._bootstraps[policy_id] = {**bootstrap, "rollout_shape": np.array(shape)}
         self._forget_samples(self._samples.append(rows))
         self._sample_counts[policy_id] += min(len(targets), self.buffer_size)
+
+    def _obs_rows(self, observations: ObsBatch) -> list[tuple[str, np.ndarray, tuple[tuple[int, ...], np.dtype]]]:
+        """``(storage name, array, spec)`` of each observation field, reshaped to ``(-1, *shape)``."""
+        fields = []
+        for name, spec in self._obs_specs().items():
+            array = observations if self._obs_keys is None else observations[name.split("/", 1)[1]]
+            fields.append((name, np.asarray(array).reshape(-1, *spec[0]), spec))
+        return fields
 
     def _observations(self, rows: dict[str, np.ndarray]) -> ObsBatch:
         if self._obs_keys is None:
@@ -301,6 +369,52 @@ class PolicyHistory:
         if self._samples.size == 0:
             return None
         return self._observations(self._samples.get(self.rng.integers(self._samples.size, size=n)))
+
+    def recompute_targets(
+        self,
+        value_fn: Callable[[ObsBatch, np.ndarray], np.ndarray],
+        gamma: float,
+        gae_lambda: float,
+        exclude_policy: int | None = None,
+    ) -> int:
+        """Replace the value targets of every sample by lambda-returns of its own policy under ``value_fn``.
+
+        :param value_fn: ``(observations, policy_ids) -> values (n,)``: the current critic at each policy's chi
+        :param exclude_policy: A policy left as it is (the latest, whose samples the on-policy update trains on)
+        :return: The number of samples whose targets were recomputed
+        """
+        if not self.transitions:
+            raise ValueError("recompute_targets needs a history that keeps transitions (transitions=True)")
+        counts = [(pid, self._sample_counts[pid]) for pid in self._policies]
+        starts = np.cumsum([0] + [count for _, count in counts])
+        chosen = [(pid, start, count) for (pid, count), start in zip(counts, starts) if count and pid != exclude_policy]
+        if not chosen:
+            return 0
+        logical = np.concatenate([np.arange(start, start + count) for _, start, count in chosen])
+        rows = self._samples.get(logical)
+        values = np.asarray(value_fn(self._observations(rows), rows["policy_ids"]), np.float32).reshape(-1)
+        boots = [self._bootstraps[pid] for pid, _, _ in chosen]
+        last_obs = {name: np.concatenate([b[name] for b in boots]) for name in self._obs_specs()}
+        last_ids = np.concatenate([np.full(len(b["last_episode_starts"]), pid) for (pid, _, _), b in zip(chosen, boots)])
+        last_values = np.asarray(value_fn(self._observations(last_obs), last_ids), np.float32).reshape(-1)
+        targets, offset, last_offset = np.empty_like(values), 0, 0
+        for (_, _, count), bootstrap in zip(chosen, boots):
+            shape = tuple(int(x) for x in bootstrap["rollout_shape"])
+            part = slice(offset, offset + count)
+            returns = lambda_returns(
+                _rollout_tail(rows["rewards"][part], shape),
+                _rollout_tail(values[part], shape),
+                _rollout_tail(rows["episode_starts"][part], shape),
+                last_values[last_offset : last_offset + shape[1]],
+                bootstrap["last_episode_starts"],
+                gamma,
+                gae_lambda,
+            )
+            targets[part] = returns.reshape(-1)[-count:]
+            offset, last_offset = offset + count, last_offset + shape[1]
+        _check_finite(targets, "recomputed value targets")
+        self._samples.arrays["targets"][self._samples.positions(logical)] = targets
+        return len(targets)
 
     def samples(self) -> tuple[ObsBatch, np.ndarray, np.ndarray]:
         """All samples, oldest first: ``(observations, targets, policy_ids)``."""
@@ -349,6 +463,8 @@ class PolicyHistory:
         }
         arrays = {f"record/{name}": array for name, array in self.records(ids).items()} if ids else {}
         arrays.update({f"sample/{name}": array for name, array in self._samples.get(np.arange(self.n_samples)).items()})
+        for policy_id, bootstrap in self._bootstraps.items():
+            arrays.update({f"bootstrap/{policy_id}/{name}": array for name, array in bootstrap.items()})
         if not isinstance(path, (str, os.PathLike)):
             np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
             return
@@ -387,11 +503,12 @@ class PolicyHistory:
                 # format 1 files hold fewer keys: those they have are checked; a history without a layout takes any
                 if (version > 1 or key in found_signature)
                 and not (key.startswith("actor_") and self.layout is None)
-                and found_signature.get(key) != value
+                and found_signature.get(key, _SIGNATURE_DEFAULTS.get(key)) != value
             }
             if mismatches:
                 details = ", ".join(
-                    f"{key}: file has {found!r}, model expects {wanted!r}" for key, (found, wanted) in mismatches.items()
+                    f"{key}: file has {found_signature.get(key, _SIGNATURE_DEFAULTS.get(key))!r}, model expects {wanted!r}"
+                    for key, (_, wanted) in mismatches.items()
                 )
                 raise ValueError(f"History file {path} does not match this model ({details})")
             arrays = {name: archive[name] for name in archive.files if name != "meta"}
@@ -405,7 +522,17 @@ class PolicyHistory:
             mask = arrays["sample/policy_ids"] == policy_id
             if mask.any():
                 observations = self._observations({name: arrays[f"sample/{name}"][mask] for name in self._obs_specs()})
-                loaded.add_samples(observations, arrays["sample/targets"][mask], policy_id)
+                transitions = {}
+                if self.transitions:
+                    bootstrap = {name: arrays[f"bootstrap/{policy_id}/{name}"] for name in self._obs_specs()}
+                    transitions = dict(
+                        rewards=arrays["sample/rewards"][mask],
+                        episode_starts=arrays["sample/episode_starts"][mask],
+                        last_observations=self._observations(bootstrap),
+                        last_episode_starts=arrays[f"bootstrap/{policy_id}/last_episode_starts"],
+                        rollout_shape=tuple(arrays[f"bootstrap/{policy_id}/rollout_shape"]),
+                    )
+                loaded.add_samples(observations, arrays["sample/targets"][mask], policy_id, **transitions)
         loaded._next_id = meta["next_id"]
         loaded.rng.bit_generator.state = meta["rng_state"]
         self.__dict__.update(loaded.__dict__)

@@ -48,9 +48,25 @@ class PolicyRecorder:
             latest = history.add_record(record, **info)
         return latest
 
-    def add_rollout(self, buffer: RolloutBuffer, policy_id: int, episode_returns: list[float]) -> None:
+    def add_rollout(
+        self,
+        buffer: RolloutBuffer,
+        policy_id: int,
+        episode_returns: list[float],
+        last_obs: ObsBatch | None = None,
+        last_episode_starts: np.ndarray | None = None,
+    ) -> None:
         """Append the rollout's samples (observations and value targets) for the policy that collected them, and the
-        mean return of the episodes that ended during it (``episode_return``)."""
-        self.history.add_samples(buffer.observations, buffer.returns, policy_id)
+        mean return of the episodes that ended during it (``episode_return``). A history that keeps transitions also
+        gets the rewards, episode starts and the observations after the rollout (``last_obs``)."""
+        transitions = {}
+        if self.history.transitions:
+            transitions = dict(
+                rewards=buffer.rewards,
+                episode_starts=buffer.episode_starts,
+                last_observations=last_obs,
+                last_episode_starts=last_episode_starts,
+            )
+        self.history.add_samples(buffer.observations, buffer.returns, policy_id, **transitions)
         if episode_returns:
             self.history.update_record_info(policy_id, episode_return=float(np.mean(episode_returns)))

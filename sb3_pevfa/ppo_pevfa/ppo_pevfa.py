@@ -50,6 +50,10 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param history_batch_size: Samples per historical critic update (paper: 64)
     :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them
     :param history_learning_starts: Environment steps before historical updates start (paper: 5k)
+    :param history_targets: Value targets of the historical samples: ``"rollout"`` (the rollout's returns, computed
+        once with the critic of that moment) or ``"recomputed"``: lambda-returns (lambda of the value targets)
+        recomputed with the current critic at the chi of each sample's own policy
+    :param history_target_refresh: Iterations between two recomputations of the historical targets
     :param fast_path: Critic values batched after each rollout, the actor alone acting
         (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
         SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
@@ -99,6 +103,8 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         history_batch_size: int = 64,
         history_train_freq: int = 10,
         history_learning_starts: int = 5_000,
+        history_targets: str = "rollout",
+        history_target_refresh: int = 1,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,

@@ -1,0 +1,108 @@
+"""Recomputed history targets: lambda-returns of each policy under the current critic, aligned with its rollout."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from conftest import FAST
+from stable_baselines3.common.buffers import RolloutBuffer
+
+from sb3_pevfa import PolicyRecord, PPOPeVFA
+from sb3_pevfa.pevfa.history import PolicyHistory
+from sb3_pevfa.pevfa.targets import lambda_returns
+
+N_STEPS, N_ENVS, GAMMA, LAM = 6, 2, 0.9, 0.8
+
+
+def _rollout(seed: int):
+    """A rollout in SB3's buffer (rewards, values, episode starts) and its TD(lambda) returns as SB3 computes them."""
+    rng = np.random.default_rng(seed)
+    space = gym.spaces.Box(-1e6, 1e6, (1,))
+    buffer = RolloutBuffer(N_STEPS, space, space, gamma=GAMMA, gae_lambda=LAM, n_envs=N_ENVS)
+    values = rng.normal(size=(N_STEPS, N_ENVS)).astype(np.float32)
+    starts = rng.random((N_STEPS, N_ENVS)) < 0.3
+    for t in range(N_STEPS):
+        obs = (1000 * seed + N_ENVS * t + np.arange(N_ENVS)).reshape(N_ENVS, 1)  # each observation names its sample
+        buffer.add(obs, np.zeros((N_ENVS, 1)), rng.normal(size=N_ENVS), starts[t], th.as_tensor(values[t]), th.zeros(N_ENVS))
+    last_values, last_dones = rng.normal(size=N_ENVS).astype(np.float32), rng.random(N_ENVS) < 0.5
+    buffer.compute_returns_and_advantage(th.as_tensor(last_values), last_dones)
+    last_obs = -(1000 * seed + np.arange(N_ENVS) + 1.0).reshape(N_ENVS, 1)
+    return buffer, values, last_values, last_obs, last_dones
+
+
+def test_lambda_returns_are_sb3s():
+    buffer, values, last_values, _, last_dones = _rollout(0)
+    returns = lambda_returns(buffer.rewards, values, buffer.episode_starts, last_values, last_dones, GAMMA, LAM)
+    np.testing.assert_allclose(returns, buffer.returns, rtol=1e-6)
+    # stacked rollouts: each its own recursion
+    stacked = lambda_returns(*(np.stack([x, x]) for x in (buffer.rewards, values, buffer.episode_starts, last_values,
+                             last_dones.astype(np.float32))), GAMMA, LAM)  # fmt: skip
+    np.testing.assert_allclose(stacked[1], buffer.returns, rtol=1e-6)
+
+
+@pytest.mark.parametrize("buffer_size", [100, 16])  # 16: the first policy's rollout is partly evicted
+def test_recomputing_with_the_rollouts_own_values_gives_its_returns(tmp_path, buffer_size):
+    """A value function that returns the values each rollout used reproduces SB3's returns, sample by sample (the
+    alignment of rewards, episode starts and bootstrap), also for a rollout whose front was evicted, and after a
+    save and load; a different value function moves every target."""
+    space = gym.spaces.Box(-1e6, 1e6, (1,))
+    history = PolicyHistory(space, space, n_params=2, n_state_action_pairs=0, buffer_size=buffer_size, transitions=True)
+    lookup, expected = {}, {}
+    for seed in (1, 2):
+        buffer, values, last_values, last_obs, last_dones = _rollout(seed)
+        empty = np.zeros((0, 1), np.float32)
+        record = {"params": np.full(2, seed, np.float32), "states": empty, "actions": empty, "codes": np.zeros(0, np.float32)}
+        policy_id = history.add_record(record)
+        history.add_samples(buffer.observations, buffer.returns, policy_id, buffer.rewards, buffer.episode_starts,
+                            last_obs, last_dones)  # fmt: skip
+        lookup.update(zip(buffer.observations.reshape(-1).tolist(), values.reshape(-1).tolist()))
+        lookup.update(zip(last_obs.reshape(-1).tolist(), last_values.tolist()))
+        expected[policy_id] = buffer.returns.reshape(-1)
+
+    def rollout_values(observations, policy_ids):
+        return np.array([lookup[float(o)] for o in observations.reshape(-1)])
+
+    _, before, ids = history.samples()
+    assert history.recompute_targets(rollout_values, GAMMA, LAM) == len(before)
+    _, after, _ = history.samples()
+    for policy_id, returns in expected.items():
+        kept = ids == policy_id
+        np.testing.assert_allclose(after[kept], returns[-kept.sum() :], rtol=1e-5)
+    history.save(tmp_path / "h")
+    loaded = PolicyHistory(space, space, 2, 0, buffer_size=buffer_size, transitions=True).load(tmp_path / "h")
+    assert loaded.recompute_targets(lambda o, i: rollout_values(o, i) + 1.0, GAMMA, LAM, exclude_policy=1) > 0
+    _, moved, _ = loaded.samples()
+    # (a step that ends its episode keeps its reward as target, whatever the values)
+    assert not np.allclose(moved[ids != 1], after[ids != 1]) and np.array_equal(moved[ids == 1], after[ids == 1])
+    with pytest.raises(ValueError, match="transitions"):
+        PolicyHistory(space, space, 2, 0, transitions=False).load(tmp_path / "h")
+
+
+def test_the_model_recomputes_historical_targets_with_each_policys_chi():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", **FAST)
+    model.learn(256)
+    history, policy = model.history, model.policy
+    obs, frozen, ids = history.samples()
+    assert model._refresh_history_targets() == int((ids != history.latest_policy_id).sum())
+    _, targets, _ = history.samples()
+    # by hand for one historical policy: its full rollout (64 steps, 1 env) under V(., chi of that policy)
+    first = history.policy_ids[0]
+    rows = ids == first
+    bootstrap = history._bootstraps[first]
+    policy.set_training_mode(False)
+    with th.no_grad():
+        chi = policy.embed(PolicyRecord.from_numpy(history.records([first])))
+        values = policy.predict_values(th.as_tensor(obs[rows]), chi).numpy().reshape(64, 1)
+        last = policy.predict_values(th.as_tensor(bootstrap["obs"]), chi).numpy().reshape(1)
+    all_rows = history._samples.get(np.arange(history.n_samples))
+    returns = lambda_returns(all_rows["rewards"][rows].reshape(64, 1), values, all_rows["episode_starts"][rows].reshape(64, 1),
+                             last, bootstrap["last_episode_starts"], model.gamma, model.gae_lambda)  # fmt: skip
+    np.testing.assert_allclose(targets[rows], returns.reshape(-1), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(targets[rows], frozen[rows])
+
+
+def test_bad_history_target_settings():
+    with pytest.raises(ValueError, match="valid choices"):
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="monte_carlo")
+    with pytest.raises(ValueError, match="history_target_refresh"):
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", history_target_refresh=0)
