@@ -54,6 +54,9 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-relu": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU)"),
     "pevfa-opr-relu-layernorm": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='layernorm')"),
     "pevfa-opr-layernorm": dict(policy_kwargs="dict(chi_normalization='layernorm')"),
+    # targets of the historical samples: recomputed with the current critic, or the paper's Monte-Carlo returns
+    "pevfa-opr-recomputed": dict(history_targets="recomputed"),
+    "pevfa-opr-mc": dict(value_target_lambda=1.0),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
