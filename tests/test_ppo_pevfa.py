@@ -615,3 +615,29 @@ def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():
     with pytest.raises(ValueError, match=r"critic-first epochs is (nan|inf)"):
         model._train_critic_on_rollout()
     assert th.equal(module_parameters(model.policy.representation), encoder)  # no step spread it
+
+
+def test_logs_that_show_whether_the_critic_tells_policies_apart(csv_logger):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    model.set_logger(csv_logger[0])
+    model.learn(128)
+    last = read_progress(csv_logger[1])[-1]
+    assert 0.0 <= float(last["pevfa/embedding_saturated_fraction"]) <= 1.0
+    head, policy = model.policy.value_net, model.policy
+    policy.set_training_mode(False)
+    chi = policy.behaviour_embedding()
+    # Tanh stream: a huge chi drives every unit to the flat ends, a chi that the first layer maps to 0 to none
+    assert head.saturated_fraction(1e4 * th.sign(th.randn_like(chi))) > 0.9
+    with th.no_grad():
+        head.embedding_net[0].bias.zero_()
+    assert head.saturated_fraction(th.zeros_like(chi)) == 0.0
+    # dV/dchi: matches a central difference along chi's own direction, and is 0 once the stream ignores chi
+    gradient = model.value_chi_gradient(n_states=1)
+    obs = flat_observations(model.rollout_buffer, model.device, env_major=False)[:1]
+    with th.no_grad():
+        step = 1e-3 * chi / chi.norm()
+        slope = (policy.predict_values(obs, chi + step) - policy.predict_values(obs, chi - step)).item() / 2e-3
+    assert abs(slope) <= gradient * (1 + 1e-3) and gradient > 0
+    with th.no_grad():
+        head.embedding_net[0].weight.zero_()
+    assert model.value_chi_gradient() == 0.0
