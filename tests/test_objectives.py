@@ -240,3 +240,10 @@ def test_spr_and_aux_read_pairs_of_their_own(separate_pairs):
         assert aux_loss(changed(decoded)) != aux_loss(records)
         if other is not None:
             assert aux_loss(changed(other)) == aux_loss(records)
+
+
+def test_the_contrastive_key_encoder_reads_the_pairs_spr_reads():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", representation_objectives=("cl", "aux"), **FAST)
+    policy = model.policy
+    assert policy.representation.pairs == policy.objectives["cl"].key_encoder.pairs == slice(0, 200)
+    assert policy.objectives["aux"].pairs == slice(200, 400)

@@ -516,6 +516,19 @@ def test_policy_pickles_copies_and_deepcopies_like_sb3():
             assert not clone.critic_trainable and policy.critic_trainable
 
 
+def test_a_gsde_policy_samples_after_a_deepcopy():
+    import copy
+
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", use_sde=True, **FAST).learn(128)  # its noise matrices carry a graph
+    clone = copy.deepcopy(model.policy)
+    obs = np.zeros((4, 3), np.float32)
+    np.testing.assert_array_equal(clone.predict(obs, deterministic=True)[0], model.policy.predict(obs, deterministic=True)[0])
+    th.manual_seed(0)
+    sampled = clone.predict(obs, deterministic=False)[0]
+    th.manual_seed(0)
+    np.testing.assert_array_equal(sampled, model.policy.predict(obs, deterministic=False)[0])
+
+
 def test_a_second_history_callback_does_not_touch_the_behaviour_record():
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
     extra = PolicyHistoryCallback(n_state_action_pairs=200)

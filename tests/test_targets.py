@@ -106,3 +106,14 @@ def test_bad_history_target_settings():
         PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="monte_carlo")
     with pytest.raises(ValueError, match="history_target_refresh"):
         PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", history_target_refresh=0)
+
+
+def test_an_unchanged_actor_gets_a_record_per_rollout_when_targets_are_recomputed():
+    """The recorder records an unchanged policy once; recomputed targets need each rollout's own bootstrap, so there
+    every rollout gets its record (here the actor never moves: its learning rate is 0)."""
+    kwargs = dict(learning_rate=0.0, critic_learning_rate=1e-3, **FAST)
+    frozen_actor = PPOPeVFA("MlpPolicy", "Pendulum-v1", **kwargs).learn(256)
+    assert frozen_actor.history.n_policies == 1
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", **kwargs).learn(256)
+    assert model.history.n_policies == 5 and model.history.n_samples == 256
+    assert model._refresh_history_targets() == 256  # the latest record (the final policy) has no samples

@@ -193,7 +193,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         chi (the latest policy's samples keep the rollout's returns: the on-policy update trains on those).
         Returns the number of samples recomputed."""
         iteration = self.num_timesteps // (self.n_steps * self.n_envs)
-        if self.history_targets != "recomputed" or iteration % self.history_target_refresh:
+        reads = self.history_train_freq > 0 and self.num_timesteps >= self.history_learning_starts
+        if self.history_targets != "recomputed" or not reads or iteration % self.history_target_refresh:
             return 0
         lam = self.gae_lambda if self.value_target_lambda is None else self.value_target_lambda
         self.policy.set_training_mode(False)

@@ -45,6 +45,8 @@ class PeVFAValueHead(nn.Module):
             raise ValueError(f"Unknown critic_combine {combine!r}, valid choices: {CRITIC_COMBINES}")
         if chi_normalization not in CHI_NORMALIZATIONS:
             raise ValueError(f"Unknown chi_normalization {chi_normalization!r}, valid choices: {CHI_NORMALIZATIONS}")
+        if chi_normalization == "layernorm" and embedding_dim == 1:
+            raise ValueError("chi_normalization='layernorm' of a one-dimensional chi is constant: use 'none'")
         if any(int(size) <= 0 for size in [*embedding_arch, *head_arch]):
             raise ValueError(f"Layer sizes must be positive, got embedding_arch={embedding_arch}, head_arch={head_arch}")
         self.embedding_dim = embedding_dim

@@ -219,6 +219,10 @@ class PolicyHistory:
         and ``episode_return`` (mean return of the episodes that ended during its rollout) once known."""
         return dict(self._record_info[policy_id])
 
+    def sample_count(self, policy_id: int) -> int:
+        """Number of stored samples of a policy."""
+        return self._sample_counts[policy_id]
+
     def update_record_info(self, policy_id: int, **info: int | float) -> None:
         """Attach numbers to a recorded policy (saved with the history)."""
         self._record_info[policy_id].update(info)
@@ -329,12 +333,17 @@ class PolicyHistory:
                     f"rewards of shape {rewards.shape} and rollout_shape {rollout_shape}"
                 )
             rows["rewards"], rows["episode_starts"] = rewards.reshape(-1), np.asarray(episode_starts, np.float32).reshape(-1)
-            bootstrap = {name: np.asarray(a, dtype) for name, a, (_, dtype) in self._obs_rows(last_observations)}
-            bootstrap["last_episode_starts"] = np.asarray(last_episode_starts, np.float32).reshape(-1)
+            if self._sample_counts[policy_id]:
+                raise ValueError(f"Policy {policy_id} has samples already: with transitions, one rollout per record")
+            # copies: a VecEnv may reuse its observation buffers
+            bootstrap = {name: np.array(a, dtype) for name, a, (_, dtype) in self._obs_rows(last_observations)}
+            bootstrap["last_episode_starts"] = np.array(last_episode_starts, np.float32).reshape(-1)
             for name, array in [("rewards", rows["rewards"]), *bootstrap.items()]:
                 _check_finite(array, name)
-            self._bootstraps[policy_id] = {**bootstrap, "rollout_shape": np.array(shape)}
+            bootstrap["rollout_shape"] = np.array(shape)
         self._forget_samples(self._samples.append(rows))
+        if self.transitions:
+            self._bootstraps[policy_id] = bootstrap
         self._sample_counts[policy_id] += min(len(targets), self.buffer_size)
 
     def _obs_rows(self, observations: ObsBatch) -> list[tuple[str, np.ndarray, tuple[tuple[int, ...], np.dtype]]]:
@@ -397,21 +406,32 @@ class PolicyHistory:
         last_obs = {name: np.concatenate([b[name] for b in boots]) for name in self._obs_specs()}
         last_ids = np.concatenate([np.full(len(b["last_episode_starts"]), pid) for (pid, _, _), b in zip(chosen, boots)])
         last_values = np.asarray(value_fn(self._observations(last_obs), last_ids), np.float32).reshape(-1)
-        targets, offset, last_offset = np.empty_like(values), 0, 0
+        # the rollouts of one shape go through one stacked recursion
+        groups: dict[tuple[int, ...], list[tuple[slice, slice, dict[str, np.ndarray]]]] = {}
+        offset, last_offset = 0, 0
         for (_, _, count), bootstrap in zip(chosen, boots):
             shape = tuple(int(x) for x in bootstrap["rollout_shape"])
-            part = slice(offset, offset + count)
+            groups.setdefault(shape, []).append(
+                (slice(offset, offset + count), slice(last_offset, last_offset + shape[1]), bootstrap)
+            )
+            offset, last_offset = offset + count, last_offset + shape[1]
+        targets = np.empty_like(values)
+        for shape, members in groups.items():
+
+            def stacked(array: np.ndarray, shape: tuple[int, ...] = shape, members: list = members) -> np.ndarray:
+                return np.stack([_rollout_tail(array[part], shape) for part, _, _ in members])
+
             returns = lambda_returns(
-                _rollout_tail(rows["rewards"][part], shape),
-                _rollout_tail(values[part], shape),
-                _rollout_tail(rows["episode_starts"][part], shape),
-                last_values[last_offset : last_offset + shape[1]],
-                bootstrap["last_episode_starts"],
+                stacked(rows["rewards"]),
+                stacked(values),
+                stacked(rows["episode_starts"]),
+                np.stack([last_values[last] for _, last, _ in members]),
+                np.stack([bootstrap["last_episode_starts"] for _, _, bootstrap in members]),
                 gamma,
                 gae_lambda,
             )
-            targets[part] = returns.reshape(-1)[-count:]
-            offset, last_offset = offset + count, last_offset + shape[1]
+            for (part, _, _), rollout in zip(members, returns):
+                targets[part] = rollout.reshape(-1)[len(rollout.reshape(-1)) - (part.stop - part.start) :]
         _check_finite(targets, "recomputed value targets")
         self._samples.arrays["targets"][self._samples.positions(logical)] = targets
         return len(targets)
@@ -501,7 +521,7 @@ class PolicyHistory:
                 key: (found_signature.get(key), value)
                 for key, value in self.signature.items()
                 # format 1 files hold fewer keys: those they have are checked; a history without a layout takes any
-                if (version > 1 or key in found_signature)
+                if (version > 1 or key in found_signature or key in _SIGNATURE_DEFAULTS)
                 and not (key.startswith("actor_") and self.layout is None)
                 and found_signature.get(key, _SIGNATURE_DEFAULTS.get(key)) != value
             }

@@ -167,6 +167,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         if self.representation.uses_state_action_pairs and aux is not None and aux.separate_pairs:
             self.n_recorded_pairs = 2 * n_pairs
             self.representation.pairs, aux.pairs = slice(0, n_pairs), slice(n_pairs, 2 * n_pairs)
+            for module in self.objectives.modules():  # copies of the encoder (CL's momentum key encoder) read as it does
+                if isinstance(module, PolicyRepresentation):
+                    module.pairs = self.representation.pairs
         # The behaviour policy's record travels with the policy's state dict (empty fields stay out of it).
         behaviour = {
             "behaviour_params": th.zeros(self.layout.n_params),
@@ -343,8 +346,10 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         action_dist = copy.copy(self.action_dist)
         for name, value in vars(action_dist).items():
             values = value if isinstance(value, list) else [value]
-            if any(isinstance(v, th.distributions.Distribution) or (isinstance(v, th.Tensor) and v.grad_fn) for v in values):
-                setattr(action_dist, name, None)
+            if any(isinstance(v, th.distributions.Distribution) for v in values):
+                setattr(action_dist, name, None)  # rebuilt at the next call
+            elif isinstance(value, th.Tensor) and value.grad_fn is not None:
+                setattr(action_dist, name, value.detach().clone())  # e.g. gSDE's exploration matrices
         state["action_dist"] = action_dist
         return state
 

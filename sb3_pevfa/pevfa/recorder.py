@@ -42,7 +42,9 @@ class PolicyRecorder:
         history = self.history
         latest = history.latest_policy_id
         params = self.layout.flatten(policy).cpu().numpy()
-        if latest is None or not np.array_equal(history.records([latest], fields=("params",))["params"][0], params):
+        # an unchanged policy is recorded once; with transitions, each rollout needs a record of its own (its bootstrap)
+        reusable = latest is not None and not (history.transitions and history.sample_count(latest))
+        if not reusable or not np.array_equal(history.records([latest], fields=("params",))["params"][0], params):
             code = history.rng.uniform(-1.0, 1.0, size=history.code_dim)
             record = record_policy(policy, self.layout, self._probe_observations(fallback_obs), code)
             latest = history.add_record(record, **info)
