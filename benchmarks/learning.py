@@ -257,7 +257,8 @@ def plot(out: pathlib.Path, png: pathlib.Path) -> None:
 
     results = load_results(out)
     fig, axes = plt.subplots(2, len(results), figsize=(6 * len(results), 8), squeeze=False)
-    colors = {variant: f"C{i}" for i, variant in enumerate(VARIANTS)}
+    palette = plt.get_cmap("tab20").colors  # more variants than the ten default colours: none shares one
+    colors = {variant: palette[(2 * i) % 20 + (2 * i) // 20 % 2] for i, variant in enumerate(VARIANTS)}
     for column, (env_id, variants) in enumerate(sorted(results.items())):
         for variant, runs in sorted(variants.items()):
             n = min(len(r["curve"]) for r in runs)

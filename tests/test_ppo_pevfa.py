@@ -336,9 +336,9 @@ def test_sampled_history_batches_are_the_samples_of_their_policies():
     rollouts, batches = {}, []
     add_rollout, sample, critic_step = model.recorder.add_rollout, model.history.sample, model._critic_step
 
-    def spy_rollout(buffer, policy_id, returns):
+    def spy_rollout(buffer, policy_id, *args):
         rollouts[policy_id] = (buffer.observations.reshape(-1, 3).copy(), buffer.returns.reshape(-1).copy())
-        add_rollout(buffer, policy_id, returns)
+        add_rollout(buffer, policy_id, *args)
 
     def spy_sample(n, exclude_policy=None):
         batch = sample(n, exclude_policy=exclude_policy)

@@ -363,8 +363,12 @@ def test_mixed_dict_observations_with_objectives(tmp_path, representation):
         **FAST,
     )
     model.learn(192)
-    # states are flattened after preprocessing: one-hot(3) + box(2) + binary(2)
-    assert model.history.records([0])["states"].shape == (1, 200, 7)
+    # states are flattened after preprocessing (keys in sorted order): box(2) + one-hot(3) + binary(2); with SPR the
+    # AUX objective decodes 200 pairs of its own
+    assert model.history.records([0])["states"].shape == (1, 400 if representation == "spr" else 200, 7)
+    states = model.history.records(model.history.policy_ids)["states"]
+    np.testing.assert_array_equal(states[..., 2:5].sum(-1), 1)  # the one-hot of the Discrete key
+    assert np.isin(states[..., 2:], [0, 1]).all() and (np.abs(states[..., :2]) <= 1).all()
     obs = {key: np.stack([space.sample() for _ in range(3)]) for key, space in model.observation_space.spaces.items()}
     loaded = _saved_and_loaded(model, tmp_path / "model")
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
