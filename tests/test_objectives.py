@@ -56,10 +56,16 @@ def test_contrastive_learning_separates_policies(name):
         accuracy = np.mean([objective.loss(representation, batch)[1]["cl_accuracy"] for _ in range(10)])
     # chance is 1/16
     assert accuracy > 0.4 and accuracy > before["cl_accuracy"] + 0.2
-    # the momentum encoder followed the online one, slowly
-    online = th.cat([p.flatten() for p in representation.parameters()])
-    key = th.cat([p.flatten() for p in objective.key_encoder.parameters()])
+
+    # the momentum encoder follows the online one, slowly: key <- (1 - m) key + m online after each step
+    def flat(module):
+        return th.cat([p.detach().flatten().clone() for p in module.parameters()])
+
+    online, key = flat(representation), flat(objective.key_encoder)
     assert not th.equal(online, key) and th.allclose(online, key, atol=0.5)
+    objective.after_step(representation)
+    m = objective.momentum
+    th.testing.assert_close(flat(objective.key_encoder), (1 - m) * key + m * online, rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize(

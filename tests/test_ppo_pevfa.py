@@ -98,10 +98,16 @@ def test_save_load_roundtrip(tmp_path, representation):
         np.testing.assert_array_equal(got, want)
     # optimizer state (both parameter groups) round-trips
     assert [g["name"] for g in loaded.policy.optimizer.param_groups] == ["actor", "critic"]
-    assert len(loaded.policy.optimizer.state) == len(model.policy.optimizer.state) > 0
+    assert [g["lr"] for g in loaded.policy.optimizer.param_groups] == [g["lr"] for g in model.policy.optimizer.param_groups]
+    saved, restored = (m.policy.optimizer.state_dict()["state"] for m in (model, loaded))
+    assert saved.keys() == restored.keys() and len(saved) > 0
+    for key, state in saved.items():
+        assert all(th.equal(state[name], restored[key][name]) for name in ("step", "exp_avg", "exp_avg_sq"))
     assert loaded.history.n_policies == 0
     loaded.load_history(tmp_path / "history")
     assert loaded.history.policy_ids == model.history.policy_ids and loaded.history.n_samples == 128  # 2 policies x 64
+    for got, want in zip(loaded.history.samples(), model.history.samples()):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_load_history_of_another_model_is_refused(tmp_path):
