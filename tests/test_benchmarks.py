@@ -66,3 +66,11 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
          "--out", str(tmp_path / "memory.json"), cwd=ROOT)  # fmt: skip
     memory = json.loads((tmp_path / "memory.json").read_text())["rows"]
     assert memory[0]["mb"] < memory[1]["mb"] and memory[1]["policies"] == 4
+
+
+def test_profile_benchmark_reports_both_algorithms(tmp_path):
+    stdout = _run(str(ROOT / "benchmarks" / "profile_iteration.py"), "--env", "CartPole-v1", "--iterations", "2", cwd=tmp_path)
+    rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in stdout.splitlines() if line.startswith("| ")}
+    assert {"CPU time (s)", "rollout", "PPO update", "history updates"} <= set(rows)
+    # PPO has none; PPOPeVFA trains on the history once past its 5000 learning-start steps (3 x 2048 here)
+    assert float(rows["history updates"][0]) == 0.0 < float(rows["history updates"][1])
