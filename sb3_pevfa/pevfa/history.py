@@ -316,9 +316,8 @@ class PolicyHistory:
         targets = np.asarray(targets, dtype=np.float32).reshape(-1)
         _check_finite(targets, "value targets")
         rows: dict[str, np.ndarray] = {}
-        for name, (shape, dtype) in self._obs_specs().items():
-            array = observations if self._obs_keys is None else observations[name.split("/", 1)[1]]
-            rows[name] = np.asarray(array).reshape(-1, *shape).astype(dtype, copy=False)
+        for name, array, (_, dtype) in self._obs_rows(observations):
+            rows[name] = array.astype(dtype, copy=False)
             _check_finite(rows[name], f"observations {name!r}")
             if len(rows[name]) != len(targets):
                 raise ValueError(f"{len(rows[name])} observations for {len(targets)} targets")
