@@ -30,6 +30,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
+
 #: The shared hyperparameters of each base algorithm (``--conf`` replaces them).
 CONFS = {
     "ppo": pathlib.Path(__file__).parent / "hyperparams" / "learning.yml",
@@ -48,8 +50,10 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-cl": dict(representation_objectives=("cl",)),
     "pevfa-spr-aux": dict(representation="spr", representation_objectives=("aux",)),
     "pevfa-opr-paper": dict(
-        update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
+        update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3, **PAPER_SCHEDULE
     ),
+    # the paper's historical updates (64 uniform samples per 10 steps, the encoder also trained on the rollout)
+    "pevfa-opr-paper-schedule": dict(PAPER_SCHEDULE),
     # the critic's embedding stream (issue: chi saturated a Tanh stream): the paper's ReLU, and a layer-normalised chi
     "pevfa-opr-relu": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU)"),
     "pevfa-opr-relu-layernorm": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='layernorm')"),

@@ -2,7 +2,7 @@ import os
 
 import sb3_pevfa.envs  # noqa: F401  (registers PointWalker-v0)
 from sb3_pevfa.a2c_pevfa import A2CPeVFA
-from sb3_pevfa.pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord
+from sb3_pevfa.pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord
 from sb3_pevfa.ppo_pevfa import PPOPeVFA
 
 # Read version from file
@@ -10,4 +10,12 @@ version_file = os.path.join(os.path.dirname(__file__), "version.txt")
 with open(version_file) as file_handler:
     __version__ = file_handler.read().strip()
 
-__all__ = ["REPRESENTATIONS", "A2CPeVFA", "PPOPeVFA", "PolicyHistory", "PolicyHistoryCallback", "PolicyRecord"]
+__all__ = [
+    "PAPER_SCHEDULE",
+    "REPRESENTATIONS",
+    "A2CPeVFA",
+    "PPOPeVFA",
+    "PolicyHistory",
+    "PolicyHistoryCallback",
+    "PolicyRecord",
+]

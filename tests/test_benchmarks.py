@@ -74,3 +74,16 @@ def test_profile_benchmark_reports_both_algorithms(tmp_path):
     assert {"CPU time (s)", "rollout", "PPO update", "history updates"} <= set(rows)
     # PPO has none; PPOPeVFA trains on the history once past its 5000 learning-start steps (3 x 2048 here)
     assert float(rows["history updates"][0]) == 0.0 < float(rows["history updates"][1])
+
+
+def test_history_step_benchmark_times_every_setting(tmp_path):
+    stdout = _run(
+        str(ROOT / "benchmarks" / "history_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
+        "--steps", "2", cwd=tmp_path,
+    )  # fmt: skip
+    rows = [line.split("|")[1:3] for line in stdout.splitlines() if line.startswith("| ") and "samples" in line]
+    assert [label.strip() for label, _ in rows] == [
+        "64 samples, uniform", "64 samples, 8 policies", "256 samples, uniform", "256 samples, 8 policies",
+        "256 samples, 4 policies", "512 samples, 8 policies",
+    ]  # fmt: skip
+    assert all(float(ms) > 0 for _, ms in rows)

@@ -94,4 +94,6 @@ def test_per_step_callbacks_see_sb3_locals():
 
     env = gym.make("Pendulum-v1")
     PPOPeVFA("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0).learn(64, callback=Probe())
-    assert {"actions", "clipped_actions", "new_obs", "rewards", "dones", "infos", "log_probs", "obs_tensor"} <= seen
+    assert {"actions", "clipped_actions", "new_obs", "rewards", "dones", "infos", "obs_tensor"} <= seen
+    # values and log-probabilities come from batched passes after the rollout (fast_path=False has them per step)
+    assert not {"values", "log_probs"} & seen

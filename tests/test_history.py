@@ -261,3 +261,43 @@ def test_a_history_that_can_grow_past_gigabytes_is_announced():
         warnings.simplefilter("error")
         PPOPeVFA("CnnPolicy", env, n_steps=64, batch_size=32, history_buffer_size=20_000)
         PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr")
+
+
+def test_grouped_batches_read_few_policies_and_keep_the_uniform_distribution():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    for i, n in enumerate([100, 300, 600, 50]):  # unequal sample counts; policy 3 is the current one
+        pid = history.add_record(_record(i))
+        history.add_samples(np.full((n, 3), i, np.float32), np.arange(n, dtype=np.float32) + 1000 * i, pid)
+    batches = [history.sample_grouped(64, 4, exclude_policy=3) for _ in range(3000)]
+    for observations, targets, ids in batches[:50]:
+        assert len(ids) == 64 and len(np.unique(ids)) <= 4 and 3 not in ids
+        # 16 samples per drawn policy (a policy drawn twice has 32), each with its own policy's row
+        assert all(len(np.unique(ids[i : i + 16])) == 1 for i in range(0, 64, 16))
+        np.testing.assert_array_equal(observations[:, 0], ids)
+        np.testing.assert_array_equal(targets // 1000, ids)
+    ids = np.concatenate([b[2] for b in batches])
+    # every eligible sample is equally likely: policies in proportion to their counts (100:300:600) ...
+    np.testing.assert_allclose(np.bincount(ids, minlength=3)[:3] / len(ids), [0.1, 0.3, 0.6], atol=0.02)
+    # ... and the samples of a policy uniform among its own
+    within = np.concatenate([b[1][b[2] == 2] for b in batches]) - 2000
+    assert within.min() == 0 and within.max() == 599
+    np.testing.assert_allclose(np.histogram(within, bins=6, range=(0, 600))[0] / len(within), 1 / 6, atol=0.01)
+    # the remainder goes to the first policies (3, 3, 2, 2 of 10); more policies than samples: one sample each
+    ids = history.sample_grouped(10, 4)[2]
+    assert len(ids) == 10 and all(len(np.unique(ids[a:b])) == 1 for a, b in ((0, 3), (3, 6), (6, 8), (8, 10)))
+    assert history.sample_grouped(4, 8)[2].shape == (4,)
+
+
+def test_grouped_sampling_is_seeded_and_none_without_eligible_samples():
+    def draw(seed):
+        history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=seed)
+        _fill(history, 5, 40)
+        return [history.sample_grouped(32, 2, exclude_policy=4)[2] for _ in range(10)]
+
+    assert all(np.array_equal(a, b) for a, b in zip(draw(0), draw(0)))
+    assert not all(np.array_equal(a, b) for a, b in zip(draw(0), draw(1)))
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    _fill(history, 1, 10)
+    assert history.sample_grouped(8, 2, exclude_policy=0) is None
+    history.add_record(_record(1))  # a policy without samples yet is never drawn
+    assert set(history.sample_grouped(64, 8)[2].tolist()) == {0}

@@ -194,11 +194,14 @@ def test_load_leaves_the_callers_rng_as_sb3_does(tmp_path, seed):
         np.testing.assert_array_equal(got, want)
 
 
-def test_value_loss_trains_encoder_and_not_actor():
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="opr", **FAST)
+@pytest.mark.parametrize("rollout_encoder_gradient", [True, False])
+def test_value_loss_trains_encoder_and_not_actor(rollout_encoder_gradient):
+    model = PPOPeVFA(
+        "MlpPolicy", "Pendulum-v1", representation="opr", rollout_encoder_gradient=rollout_encoder_gradient, **FAST
+    )
     model.learn(192)
     policy = model.policy
-    # gradient of the on-policy value loss: reaches the encoder and the critic, never the actor
+    # gradient of the on-policy value loss: reaches the critic, never the actor; the encoder only if asked to
     policy.set_training_mode(True)
     data = next(model.rollout_buffer.get(64))
     values, _, _ = policy.evaluate_actions(data.observations, data.actions)
@@ -206,7 +209,9 @@ def test_value_loss_trains_encoder_and_not_actor():
     th.nn.functional.mse_loss(values.flatten(), data.returns).backward()
     actor = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
     assert all(p.grad is None or not p.grad.any() for p in actor)
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.representation.parameters())
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.value_net.parameters())
+    encoder_grads = [p.grad is not None and p.grad.abs().sum() > 0 for p in policy.representation.parameters()]
+    assert encoder_grads == [rollout_encoder_gradient] * len(encoder_grads)
     # historical updates change the encoder and the critic, and leave the actor as it was
     actor_before, encoder_before = actor_parameters(policy), module_parameters(policy.representation)
     critic_before = module_parameters(policy.value_net)
@@ -216,6 +221,45 @@ def test_value_loss_trains_encoder_and_not_actor():
     assert th.equal(actor_parameters(policy), actor_before)
     assert not th.equal(module_parameters(policy.representation), encoder_before)
     assert not th.equal(module_parameters(policy.value_net), critic_before)
+
+
+@pytest.mark.parametrize("update_order", ["joint", "critic_first"])
+def test_without_rollout_gradient_the_on_policy_update_reads_the_moved_encoder_and_leaves_it(update_order):
+    """``rollout_encoder_gradient=False`` (default): the on-policy update reads chi of the encoder as the historical
+    updates left it (not a chi cached before them), without gradient, and does not change the encoder."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", update_order=update_order, **FAST)
+    model.learn(128)
+    policy, calls = model.policy, []
+    on_policy = model._train_critic_on_rollout if update_order == "critic_first" else model._train_actor_critic
+    embedding, history = policy.behaviour_embedding, model._train_on_history
+
+    def spy_history():
+        calls.append(("before history", module_parameters(policy.representation)))
+        return history()
+
+    def spy_embedding():
+        chi = embedding()
+        calls.append(("chi", chi))
+        return chi
+
+    def spy_on_policy():
+        with th.no_grad():
+            calls.append(("expected", policy.embed(policy.behaviour_record()), module_parameters(policy.representation)))
+        policy.behaviour_embedding = spy_embedding
+        try:
+            return on_policy()
+        finally:
+            del policy.behaviour_embedding
+            calls.append(("after", module_parameters(policy.representation)))
+
+    model._train_on_history = spy_history
+    setattr(model, "_train_critic_on_rollout" if update_order == "critic_first" else "_train_actor_critic", spy_on_policy)
+    model.learn(64, reset_num_timesteps=False)
+    (_, before), (_, expected, encoder) = calls[0], calls[1]
+    assert not th.equal(before, encoder)  # the historical updates moved the encoder ...
+    chis = [call[1] for call in calls if call[0] == "chi"]
+    assert len(chis) >= 4 and all(th.equal(chi, expected) and not chi.requires_grad for chi in chis)  # ... chi is theirs
+    assert th.equal(calls[-1][1], encoder)  # and the on-policy update left it
 
 
 def test_critic_frozen_for_actor_update_in_critic_first_order(csv_logger):
@@ -334,20 +378,32 @@ def test_history_bounds_during_training():
     np.testing.assert_array_equal(targets[-64:], model.rollout_buffer.returns.flatten())
 
 
-def test_sampled_history_batches_are_the_samples_of_their_policies():
+@pytest.mark.parametrize("batch_policies", [None, 2])
+def test_sampled_history_batches_are_the_samples_of_their_policies(batch_policies):
     """Each batch of the historical updates: samples of earlier policies only (never the one that collected the
     current rollout), each with the observation and value target its policy's rollout gave, and a loss computed with
-    the chi of that very policy (``random`` codes: chi far apart for every policy, so a mix-up shows in the loss)."""
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="random", **FAST)
+    the chi of that very policy (``random`` codes: chi far apart for every policy, so a mix-up shows in the loss).
+    Grouped batches (``history_batch_policies``) hold that many policies at most; None: uniform samples."""
+    model = PPOPeVFA(
+        "MlpPolicy",
+        "Pendulum-v1",
+        representation="random",
+        history_batch_size=64,
+        history_batch_policies=batch_policies,
+        **FAST,
+    )
     rollouts, batches = {}, []
-    add_rollout, sample, critic_step = model.recorder.add_rollout, model.history.sample, model._critic_step
+    add_rollout, critic_step = model.recorder.add_rollout, model._critic_step
+    sampler = "sample" if batch_policies is None else "sample_grouped"
+    sample = getattr(model.history, sampler)
 
     def spy_rollout(buffer, policy_id, *args):
         rollouts[policy_id] = (buffer.observations.reshape(-1, 3).copy(), buffer.returns.reshape(-1).copy())
         add_rollout(buffer, policy_id, *args)
 
-    def spy_sample(n, exclude_policy=None):
-        batch = sample(n, exclude_policy=exclude_policy)
+    def spy_sample(n, *args, **kwargs):
+        batch = sample(n, *args, **kwargs)
+        exclude_policy = kwargs.get("exclude_policy", args[-1] if args else None)
         batches.append([exclude_policy, batch, None])
         return batch
 
@@ -360,16 +416,20 @@ def test_sampled_history_batches_are_the_samples_of_their_policies():
                 batches[-1][2] = (loss.item(), th.mean((values - th.as_tensor(targets)) ** 2).item())
         return critic_step(loss, what)
 
-    model.recorder.add_rollout, model.history.sample, model._critic_step = spy_rollout, spy_sample, spy_step
+    model.recorder.add_rollout, model._critic_step = spy_rollout, spy_step
+    setattr(model.history, sampler, spy_sample)
     model.learn(320)
     assert [batch is None for _, batch, _ in batches] == [True] + [False] * 16  # 4 per update from the second on
+    distinct = []
     for exclude, (obs, targets, ids), (loss, recomputed) in batches[1:]:
         assert exclude in rollouts and exclude not in ids and set(ids) <= set(rollouts)
+        distinct.append(len(np.unique(ids)))
         for o, target, policy_id in zip(obs, targets, ids):
             rollout_obs, rollout_targets = rollouts[policy_id]
             (row,) = np.flatnonzero((rollout_obs == o).all(axis=1))
             assert rollout_targets[row] == target
         assert loss == pytest.approx(recomputed, rel=1e-5)
+    assert max(distinct) == (4 if batch_policies is None else 2)  # uniform: all 4 earlier policies in the last batches
 
 
 @pytest.mark.parametrize("algo", [PPO, A2C])
@@ -402,6 +462,11 @@ def test_bad_input_errors():
         (dict(history_max_policies=-2), ValueError, "history_max_policies"),
         (dict(history_batch_size=0), ValueError, "history_batch_size"),
         (dict(history_train_freq=-1), ValueError, "history_train_freq"),
+        (dict(history_batch_policies=0), ValueError, "history_batch_policies"),
+        (dict(history_batch_policies=2.5), ValueError, "history_batch_policies"),
+        (dict(history_batch_policies=True), ValueError, "history_batch_policies"),
+        (dict(rollout_encoder_gradient="yes"), TypeError, "rollout_encoder_gradient"),
+        (dict(fast_path=None), TypeError, "fast_path"),
         (dict(n_state_action_pairs=-1), ValueError, "n_state_action_pairs"),
         (dict(representation="spr", n_state_action_pairs=0), ValueError, "n_state_action_pairs"),
         (dict(critic_learning_rate=-1.0), ValueError, "critic_learning_rate"),
@@ -488,7 +553,7 @@ def test_the_critic_reads_chi_from_its_arguments():
         # the default chi is the behaviour policy's: the latest record, after learn() the trained policy
         np.testing.assert_allclose(policy.predict_values(obs), policy.predict_values(obs, chi[-1:]), rtol=1e-6)
         first, last = policy.predict_values(obs, chi[:1]), policy.predict_values(obs, chi[-1:])
-        assert not th.allclose(first, last)  # V depends on which policy chi describes
+        assert (first - last).abs().max() > 1e-5  # V depends on which policy chi describes (untrained: 1e-4 apart)
         per_row = policy.predict_values(obs[:2], chi[[0, -1]])  # one chi per observation
         np.testing.assert_allclose(per_row.flatten(), [first[0, 0], last[1, 0]], rtol=1e-6)
         actions, values, _ = policy(obs, deterministic=True, chi=chi[:1])

@@ -25,6 +25,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
 
 REFERENCE = json.loads((pathlib.Path(__file__).parent / "data" / "reference_run.json").read_text())
 
@@ -48,8 +49,9 @@ CONFIGS = {
 def reference_numbers(name: str, fast_path: bool) -> dict[str, float]:
     config = dict(CONFIGS[name])
     env = make_vec_env(config.pop("env"), n_envs=2, seed=0)
+    schedule = {**PAPER_SCHEDULE, "history_train_freq": 16}  # the schedule of the versions that recorded them
     model = PPOPeVFA("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=2, history_learning_starts=0,
-                     history_train_freq=16, seed=0, fast_path=fast_path, **config)  # fmt: skip
+                     seed=0, fast_path=fast_path, **schedule, **config)  # fmt: skip
     model.learn(4 * 128)
     policy = model.policy
     critic_ids = {id(p) for p in policy.critic_parameters()}

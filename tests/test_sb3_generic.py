@@ -182,8 +182,11 @@ def test_cnn_policy_encodes_the_mlp_head(tmp_path, discrete, representation):
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
 
 
-def test_train_eval_mode():
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST).learn(128)
+@pytest.mark.parametrize("rollout_encoder_gradient", [True, False])
+def test_train_eval_mode(rollout_encoder_gradient):
+    model = PPOPeVFA(
+        "MlpPolicy", "Pendulum-v1", representation="spr", rollout_encoder_gradient=rollout_encoder_gradient, **FAST
+    ).learn(128)
     policy = model.policy
     policy.set_training_mode(False)
     assert not policy.training and not policy.representation.training
@@ -193,8 +196,12 @@ def test_train_eval_mode():
         assert th.equal(policy.predict_values(obs), policy.predict_values(obs))
         policy.set_training_mode(True)
         assert policy.training and policy.representation.training
-        # training mode: a random 80 % of the pairs at every call
-        assert not th.equal(policy.predict_values(obs), policy.predict_values(obs))
+        # training mode: a random 80 % of the pairs at every call, or, where the on-policy value loss does not
+        # train the encoder, at the first call of the update (chi is then computed once and kept)
+        first = policy.predict_values(obs)
+        assert th.equal(first, policy.predict_values(obs)) != rollout_encoder_gradient
+        policy.set_training_mode(True)  # a new update: a new draw
+        assert not th.equal(first, policy.predict_values(obs))
 
 
 @pytest.mark.parametrize("share_features_extractor", [True, False])

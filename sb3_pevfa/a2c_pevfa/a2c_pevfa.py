@@ -25,7 +25,9 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
 
     Parameters not listed are SB3 A2C's (:class:`~stable_baselines3.A2C`); the PeVFA parameters (``representation``
     to ``fast_path``) are PPOPeVFA's (:class:`~sb3_pevfa.PPOPeVFA`). ``fast_path`` batches the critic's values after
-    each rollout; A2C's own update is used on both paths.
+    each rollout; A2C's own update is used on both paths. A2CPeVFA keeps the paper's history schedule by default
+    (``history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True``):
+    its update is one gradient step per rollout, so PPOPeVFA's cheaper schedule does not apply to it.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -67,10 +69,12 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
         history_buffer_size: int = 200_000,
         history_max_policies: int = 10_000,
         history_batch_size: int = 64,
+        history_batch_policies: int | None = None,
         history_train_freq: int = 10,
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
+        rollout_encoder_gradient: bool = True,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,

@@ -119,6 +119,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 stacklevel=3,  # the user's constructor call
             )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
+        self.policy.behaviour_chi_gradient = self.rollout_encoder_gradient
         self._critic_params = list(self.policy.critic_parameters())
         critic_ids = {id(p) for p in self._critic_params}
         # what a critic-only step must leave alone: a features extractor shared with the actor (CnnPolicy)
@@ -221,7 +222,10 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         fields = self.policy.representation.fields
         losses = []
         for _ in range(n_updates):
-            batch = self.history.sample(self.history_batch_size, exclude_policy=current)
+            if self.history_batch_policies is None:
+                batch = self.history.sample(self.history_batch_size, exclude_policy=current)
+            else:
+                batch = self.history.sample_grouped(self.history_batch_size, self.history_batch_policies, current)
             if batch is None:
                 break
             observations, targets, policy_ids = batch
@@ -303,6 +307,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         history_losses = self._train_on_history()
         for key, values in objective_metrics.items():
             self.logger.record(f"pevfa/{key}", len(values) if key.endswith("_updates") else float(np.mean(values)))
+        self.policy.clear_embedding_cache()  # the encoder has moved: the on-policy update reads chi of its weights now
         if self.update_order == "critic_first":
             critic_losses = self._train_critic_on_rollout()
             self.logger.record("pevfa/critic_value_loss", float(np.mean(critic_losses)))

@@ -27,12 +27,17 @@ PEVFA_ARGUMENTS = (
     "history_buffer_size",
     "history_max_policies",
     "history_batch_size",
+    "history_batch_policies",
     "history_train_freq",
     "history_learning_starts",
     "history_targets",
     "history_target_refresh",
+    "rollout_encoder_gradient",
     "fast_path",
 )
+#: The paper's schedule of the historical critic updates (App. F.1: 64 uniform samples per 10 environment steps) and
+#: its end-to-end encoder, which PPOPeVFA's defaults trade for a cheaper one: ``PPOPeVFA(..., **PAPER_SCHEDULE)``
+PAPER_SCHEDULE = dict(history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True)
 #: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
 _POLICY_ARGUMENTS = PEVFA_ARGUMENTS[:6]
 _SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
@@ -92,6 +97,12 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
     for name, value in non_negative.items():
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
             raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    k = arguments["history_batch_policies"]
+    if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0):
+        raise ValueError(f"history_batch_policies must be None (uniform samples, the paper's) or a positive int, got {k!r}")
+    for name in ("rollout_encoder_gradient", "fast_path"):
+        if not isinstance(arguments[name], (bool, np.bool_)):
+            raise TypeError(f"{name} must be a bool, got {arguments[name]!r}")
     lr = arguments["critic_learning_rate"]
     if lr is not None and not callable(lr) and (not isinstance(lr, (int, float)) or not np.isfinite(lr) or lr <= 0):
         raise ValueError(f"critic_learning_rate must be a positive finite float, a schedule or None, got {lr!r}")

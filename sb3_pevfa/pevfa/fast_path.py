@@ -7,7 +7,7 @@ float round-off (``tests/test_fast_path.py``). Only what profiling shows SB3 can
 (CartPole-v1) of the update's CPU time, inside the noise of that measurement (+-5 %), and was removed; both paths
 run SB3's own ``PPO.train`` / ``A2C.train``.
 
-Per-step callbacks see SB3's locals except ``values`` (not computed during the rollout).
+Per-step callbacks see SB3's locals except ``values`` and ``log_probs`` (not computed during the rollout).
 """
 
 import numpy as np
@@ -63,6 +63,22 @@ def predict_values(policy: ActorCriticPolicy, obs: PyTorchObs, chi: th.Tensor | 
     return th.cat(chunks).flatten()
 
 
+def log_probabilities(policy: ActorCriticPolicy, obs: PyTorchObs, actions: np.ndarray) -> th.Tensor:
+    """Log-probabilities of the actor's distribution at ``obs`` of the rollout's (stored) ``actions``, in chunks of
+    :data:`VALUE_CHUNK`, ``(batch,)``: the numbers of SB3's per-step ``distribution.log_prob(actions)``, from one
+    batched pass (the distribution depends only on the observation and the actor, which the rollout leaves alone)."""
+    chunks = []
+    with th.no_grad():
+        for i in range(0, batch_size(obs), VALUE_CHUNK):
+            part = slice(i, i + VALUE_CHUNK)
+            # as SB3's PPO.train reads the buffer: float32 actions (the buffer keeps the space's dtype), Discrete as long
+            batch = th.as_tensor(actions[part].astype(np.float32, copy=False), device=policy.device)
+            if isinstance(policy.action_space, spaces.Discrete):
+                batch = batch.long().flatten()
+            chunks.append(policy.get_distribution(rows(obs, part)).log_prob(batch))
+    return th.cat(chunks).flatten()
+
+
 def collect_rollouts(
     model: OnPolicyAlgorithm,
     env: VecEnv,
@@ -72,9 +88,10 @@ def collect_rollouts(
 ) -> bool:
     """SB3's ``OnPolicyAlgorithm.collect_rollouts``, the actor alone acting, the critic evaluated after the rollout.
 
-    Each step asks the policy for its action distribution only (``get_distribution``: actions, log-probabilities,
-    SB3's draws and checks); the values of the whole rollout, of the truncated episodes' last observations
-    (bootstraps) and of the last observation come from one batched ``predict_values`` pass each.
+    Each step asks the policy for its action distribution only (``get_distribution``: actions, SB3's draws and
+    checks); the values of the whole rollout, of the truncated episodes' last observations (bootstraps) and of the
+    last observation come from one batched ``predict_values`` pass each, the log-probabilities of the rollout's
+    actions from one batched ``get_distribution(...).log_prob`` pass (:func:`log_probabilities`).
 
     Saves, measured (``benchmarks/fast_path.py``, CPU time of whole rollouts, median of 5, one torch thread):
     PPOPeVFA's 2048-step rollouts 23 % on Hopper-v5 (1.33 -> 1.03 ms per step) and 29 % on CartPole-v1
@@ -97,7 +114,6 @@ def collect_rollouts(
             obs_tensor = obs_as_tensor(model._last_obs, model.device)  # type: ignore[arg-type]
             distribution = policy.get_distribution(obs_tensor)
             actions = distribution.get_actions()
-            log_probs = distribution.log_prob(actions)
         actions = actions.cpu().numpy().reshape((-1, *model.action_space.shape))  # type: ignore[misc]
         clipped_actions = actions
         if isinstance(model.action_space, spaces.Box):
@@ -117,12 +133,15 @@ def collect_rollouts(
         for idx, done in enumerate(dones):
             if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
                 truncated.append((rollout_buffer.pos, idx, infos[idx]["terminal_observation"]))
-        rollout_buffer.add(model._last_obs, actions, rewards, model._last_episode_starts, no_values, log_probs)  # type: ignore[arg-type]
+        rollout_buffer.add(model._last_obs, actions, rewards, model._last_episode_starts, no_values, no_values)  # type: ignore[arg-type]
         model._last_obs = new_obs  # type: ignore[assignment]
         model._last_episode_starts = dones
 
-    values = predict_values(policy, flat_observations(rollout_buffer, model.device, env_major=False))
+    observations = flat_observations(rollout_buffer, model.device, env_major=False)
+    values = predict_values(policy, observations)
     rollout_buffer.values[:] = values.cpu().numpy().reshape(rollout_buffer.values.shape)
+    log_probs = log_probabilities(policy, observations, rollout_buffer.actions.reshape(-1, rollout_buffer.action_dim))
+    rollout_buffer.log_probs[:] = log_probs.cpu().numpy().reshape(rollout_buffer.log_probs.shape)
     if truncated:  # bootstrap the truncated episodes with the value of their last observation (SB3 #633)
         terminal_values = predict_values(policy, obs_as_tensor(_stack([obs for *_, obs in truncated]), model.device))
         for (pos, idx, _), value in zip(truncated, terminal_values.cpu().numpy()):

@@ -372,6 +372,32 @@ class PolicyHistory:
         rows = self._samples.get(self.rng.integers(n_valid, size=batch_size))
         return self._observations(rows), rows["targets"], rows["policy_ids"]
 
+    def sample_grouped(
+        self, batch_size: int, n_policies: int, exclude_policy: int | None = None
+    ) -> tuple[ObsBatch, np.ndarray, np.ndarray] | None:
+        """Mini-batch of ``n_policies`` policies x ``batch_size / n_policies`` samples (the remainder spread over
+        the first ones), or None when no sample is eligible.
+
+        The policies are drawn with replacement in proportion to their sample counts and the samples uniformly
+        within each, so every eligible sample has the same chance per slot as in :meth:`sample`: the expected loss
+        is the same, and a batch reads at most ``n_policies`` records instead of up to ``batch_size``.
+        """
+        counts = np.fromiter(self._sample_counts.values(), dtype=np.int64, count=len(self._sample_counts))
+        ends = np.cumsum(counts)  # the FIFO is ordered by policy: each policy's samples are contiguous
+        n_valid = self._samples.size
+        if exclude_policy is not None and exclude_policy == self.latest_policy_id:
+            n_valid -= counts[-1]  # the latest policy's samples are the newest: the eligible ones are [0, n_valid)
+        if n_valid <= 0:
+            return None
+        # the policies of uniformly drawn samples: each policy in proportion to its sample count
+        chosen = np.searchsorted(ends, self.rng.integers(n_valid, size=n_policies), side="right")
+        per_policy = np.full(n_policies, batch_size // n_policies)
+        per_policy[: batch_size % n_policies] += 1
+        offsets = self.rng.random(batch_size) * np.repeat(counts[chosen], per_policy)
+        logical = np.repeat(ends[chosen] - counts[chosen], per_policy) + offsets.astype(np.int64)
+        rows = self._samples.get(logical)
+        return self._observations(rows), rows["targets"], rows["policy_ids"]
+
     def sample_observations(self, n: int) -> ObsBatch | None:
         """``n`` observations drawn uniformly from the FIFO (probe states of SPR), or None if it is empty."""
         if self._samples.size == 0:

@@ -125,6 +125,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
         #: False inside :meth:`critic_frozen`: values carry no gradient
         self.critic_trainable = True
+        #: False: chi of the behaviour policy carries no gradient even while the critic trains (cached, so the value
+        #: loss on the rollout leaves the encoder alone); the algorithm's ``rollout_encoder_gradient`` sets it
+        self.behaviour_chi_gradient = True
         self._embedding_cache: th.Tensor | None = None
         super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
 
@@ -316,9 +319,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         )
 
     def behaviour_embedding(self) -> th.Tensor:
-        """chi of the behaviour policy, ``(1, embedding_dim)``: recomputed (with gradient) while the critic trains,
-        cached otherwise (rollouts, evaluation, frozen critic)."""
-        if self.training and self.critic_trainable:
+        """chi of the behaviour policy, ``(1, embedding_dim)``: recomputed (with gradient) while the critic trains
+        (unless :attr:`behaviour_chi_gradient` is False), cached otherwise (rollouts, evaluation, frozen critic)."""
+        if self.training and self.critic_trainable and self.behaviour_chi_gradient:
             return self.embed(self.behaviour_record())
         if self._embedding_cache is None:
             with th.no_grad():

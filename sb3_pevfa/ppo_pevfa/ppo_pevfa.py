@@ -23,8 +23,11 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     1. roll out pi_t; its record (parameters, state-action pairs) enters ``self.history`` before the rollout, and
        its ``(observation, value target)`` samples when it ends;
     2. extra critic updates on historical samples (policies 0..t-1), chi recomputed by the current encoder:
-       one ``history_batch_size`` batch per ``history_train_freq`` environment steps after
-       ``history_learning_starts`` steps; the value loss also trains the encoder (E2E);
+       one ``history_batch_size`` batch (of ``history_batch_policies`` policies) per ``history_train_freq``
+       environment steps after ``history_learning_starts`` steps; the value loss also trains the encoder (E2E).
+       The defaults (256 samples of 8 policies per 40 steps) feed the critic as many historical samples per step
+       as the paper's schedule (``history_batch_size=64, history_batch_policies=None, history_train_freq=10``)
+       in a quarter of the steps (docs/benchmarks.md, "Speed");
     3. ``update_order="joint"`` (default): SB3's joint actor-critic update, values use chi of pi_t's record;
        ``"critic_first"`` (the authors' order): critic epochs on the rollout, GAE recomputed with the updated
        critic, then the actor epochs with the critic frozen.
@@ -48,12 +51,18 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param history_buffer_size: Samples kept in the history FIFO (paper: 200k)
     :param history_max_policies: Policies kept in the history
     :param history_batch_size: Samples per historical critic update (paper: 64)
+    :param history_batch_policies: Policies per historical batch: ``history_batch_size / history_batch_policies``
+        samples of each, policies drawn in proportion to their sample counts (the same expected loss as uniform
+        samples, at most this many policies to encode per batch); None: uniform samples (the paper's)
     :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them
     :param history_learning_starts: Environment steps before historical updates start (paper: 5k)
     :param history_targets: Value targets of the historical samples: ``"rollout"`` (the rollout's returns, computed
         once with the critic of that moment) or ``"recomputed"``: lambda-returns (lambda of the value targets)
         recomputed with the current critic at the chi of each sample's own policy
     :param history_target_refresh: Iterations between two recomputations of the historical targets
+    :param rollout_encoder_gradient: The value loss on the rollout also trains the encoder (chi of the behaviour
+        policy recomputed with gradient per minibatch, as the paper's E2E); False: that chi is computed once per
+        update without gradient, and the encoder learns from the historical updates and the objectives
     :param fast_path: Critic values batched after each rollout, the actor alone acting
         (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
         SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
@@ -100,11 +109,13 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         value_target_lambda: float | None = None,
         history_buffer_size: int = 200_000,
         history_max_policies: int = 10_000,
-        history_batch_size: int = 64,
-        history_train_freq: int = 10,
+        history_batch_size: int = 256,
+        history_batch_policies: int | None = 8,
+        history_train_freq: int = 40,
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
+        rollout_encoder_gradient: bool = False,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
