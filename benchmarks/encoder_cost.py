@@ -1,8 +1,9 @@
 """Cost of each policy representation: parameters, and the time of one forward + backward pass over P policies.
 
-A historical critic update encodes the distinct policies of its 64-sample batch (about 47 once the history holds
-its default 200k samples of ~98 policies on a 2048-step task); the on-policy update encodes one (the behaviour
-policy) per minibatch. One torch thread, the actor of SB3's default MlpPolicy on the task.
+A historical critic update encodes the distinct policies of its batch: at most ``history_batch_policies`` (8) by
+default; with the paper's uniform 64-sample batches about 47 once the history holds its default 200k samples of ~98
+policies on a 2048-step task. The on-policy update encodes one (the behaviour policy) per update, or per minibatch
+with ``rollout_encoder_gradient=True``. One torch thread, the actor of SB3's default MlpPolicy on the task.
 
     python benchmarks/encoder_cost.py --env Hopper-v5 --out docs/results/encoder_cost_hopper.json
 """

@@ -28,6 +28,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+import aggregate
 import numpy as np
 
 from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
@@ -38,7 +39,8 @@ CONFS = {
     "a2c": pathlib.Path(__file__).parent / "hyperparams" / "learning_a2c.yml",
 }
 
-#: PeVFA options of each variant (rl-zoo3 ``--hyperparams``); "ppo" is SB3's PPO. "pevfa-opr" is PPOPeVFA's defaults.
+#: PeVFA options of each variant (rl-zoo3 ``--hyperparams``); "ppo" is SB3's PPO. "pevfa-opr" is PPOPeVFA's defaults
+#: (results recorded before the cheaper schedule hold what "pevfa-opr-paper-schedule" gives today).
 #: Variants named "a2c..." train A2C / A2CPeVFA instead.
 VARIANTS: dict[str, dict | None] = {
     "ppo": None,
@@ -197,7 +199,8 @@ def report(out: pathlib.Path, baseline: str = "ppo") -> str:
     """Table-1 style markdown per task: max average return +- half a std over seeds (as the paper), its rliable
     95 % CI, final return, area under the curve, the change of the mean vs PPO, seeds and wall time."""
     lines = []
-    for env_id, variants in sorted(load_results(out).items()):
+    results = load_results(out)
+    for env_id, variants in sorted(results.items()):
         base = scores(variants[baseline])["max"].mean() if baseline in variants else None
         lines += [
             f"**{env_id}** ({variants[next(iter(variants))][0]['timesteps']:,} steps)",
@@ -216,7 +219,73 @@ def report(out: pathlib.Path, baseline: str = "ppo") -> str:
                 f"{', '.join(f'{v:.0f}' for v in s['max'])} | {np.mean([r['wall_time_s'] for r in runs]):.0f} s |"
             )
         lines += ["", *per_second(variants, baseline), ""]
-    return "\n".join(lines)
+    return "\n".join(lines + aggregate_table(results, baseline))
+
+
+def task_scores(results: dict[str, dict[str, list[dict]]], baseline: str) -> dict[str, dict[str, dict]]:
+    """view -> variant -> task -> per-seed scores, for the variants run on every task that has the baseline: the
+    max average return (per step) and the best-so-far return at the baseline's mean wall-clock time (per second)."""
+    tasks = {env_id: variants for env_id, variants in results.items() if baseline in variants}
+    common = set.intersection(*(set(variants) for variants in tasks.values())) if tasks else set()
+    views: dict[str, dict[str, dict]] = {"max average return (per step)": {}, "best-so-far at the baseline's time": {}}
+    for env_id, variants in tasks.items():
+        budget = float(np.mean([r["curve"][-1].get("wall_s", np.inf) for r in variants[baseline]]))
+        for variant in common:
+            runs = variants[variant]
+            views["max average return (per step)"].setdefault(variant, {})[env_id] = scores(runs)["max"]
+            if "wall_s" in runs[0]["curve"][0]:
+                best = np.array([best_so_far_at(r, budget) for r in runs])
+                views["best-so-far at the baseline's time"].setdefault(variant, {})[env_id] = best
+    return views
+
+
+def aggregate_table(results: dict[str, dict[str, list[dict]]], baseline: str) -> list[str]:
+    """The aggregate over tasks (benchmarks/aggregate.py): IQM and mean of the scores normalised by the baseline's
+    mean per task, with 95 % stratified bootstrap CIs over tasks and seeds."""
+    views = task_scores(results, baseline)
+    if not views["max average return (per step)"]:
+        return []
+    tasks = sorted(views["max average return (per step)"][baseline])
+    lines = [
+        f"**Aggregate over {len(tasks)} task(s)** ({', '.join(tasks)}; each run's score / {baseline}'s mean on its task; "
+        "IQM and mean with 95 % stratified bootstrap CIs):",
+        "",
+        "| view | variant | runs | IQM [95 % CI] | mean [95 % CI] |",
+        "|---|---|---|---|---|",
+    ]
+    for view, variants in views.items():
+        for variant, raw in sorted(variants.items(), key=lambda item: (item[0] != baseline, item[0])):
+            normalized = aggregate.normalized(raw, variants[baseline])
+            iqm_low, iqm_high = aggregate.stratified_bootstrap_ci(normalized, aggregate.iqm)
+            mean_low, mean_high = aggregate.stratified_bootstrap_ci(normalized, aggregate.mean)
+            lines.append(
+                f"| {view} | {variant} | {sum(len(v) for v in raw.values())} | {aggregate.iqm(normalized):.2f} "
+                f"[{iqm_low:.2f}, {iqm_high:.2f}] | {aggregate.mean(normalized):.2f} [{mean_low:.2f}, {mean_high:.2f}] |"
+            )
+    return [*lines, ""]
+
+
+def plot_profiles(out: pathlib.Path, png: pathlib.Path, baseline: str) -> None:
+    """Performance profiles of both views (fraction of runs above tau, baseline-normalised, with 95 % bands)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    views = task_scores(load_results(out), baseline)
+    fig, axes = plt.subplots(1, len(views), figsize=(6 * len(views), 4), squeeze=False)
+    taus = np.linspace(0.0, 2.0, 81)
+    for ax, (view, variants) in zip(axes[0], views.items()):
+        for variant, raw in sorted(variants.items()):
+            normalized = aggregate.normalized(raw, variants[baseline])
+            low, high = aggregate.profile_band(normalized, taus)
+            ax.plot(taus, aggregate.performance_profile(normalized, taus), label=variant)
+            ax.fill_between(taus, low, high, alpha=0.2)
+        ax.set(title=f"{view}, {', '.join(sorted(next(iter(variants.values()), {})))}", xlabel=f"score / {baseline}'s mean",
+               ylabel="fraction of runs > tau")  # fmt: skip
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
 
 
 def best_so_far_at(run: dict, seconds: float) -> float:
@@ -317,6 +386,7 @@ def main() -> None:
     print(report(args.out, args.baseline))
     if args.plot is not None:
         plot(args.out, args.plot)
+        plot_profiles(args.out, args.plot.with_name(f"{args.plot.stem}_profile.png"), args.baseline)
 
 
 if __name__ == "__main__":

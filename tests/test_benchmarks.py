@@ -5,6 +5,7 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -87,3 +88,21 @@ def test_history_step_benchmark_times_every_setting(tmp_path):
         "256 samples, 4 policies", "512 samples, 8 policies",
     ]  # fmt: skip
     assert all(float(ms) > 0 for _, ms in rows)
+
+
+def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import aggregate
+
+    baseline = {"a": np.array([10.0, 30.0]), "b": np.array([1.0, 1.0, 4.0])}  # means 20 and 2
+    scores = aggregate.normalized({"a": np.array([20.0, 40.0, 60.0]), "b": np.array([2.0, 8.0])}, baseline)
+    np.testing.assert_allclose(scores["a"], [1, 2, 3]) and np.testing.assert_allclose(scores["b"], [1, 4])
+    # pooled runs 1, 1, 2, 3, 4: the middle half (trimmed 25 % at each end: 1 run each) is 1, 2, 3
+    assert aggregate.iqm(scores) == pytest.approx(2.0)
+    assert aggregate.mean(scores) == pytest.approx((2.0 + 2.5) / 2)
+    low, high = aggregate.stratified_bootstrap_ci(scores, aggregate.mean, reps=500)
+    assert 1.0 < low < aggregate.mean(scores) < high < 3.5
+    # every task's seeds resampled within the task: all-equal scores give a zero-width interval
+    assert aggregate.stratified_bootstrap_ci({"a": np.ones(3), "b": np.full(2, 2.0)}, aggregate.mean) == (1.5, 1.5)
+    # tasks weigh equally: task a has 2 of 3 runs above 1.5, task b 1 of 2
+    np.testing.assert_allclose(aggregate.performance_profile(scores, np.array([0.5, 1.5, 5.0])), [1.0, (2 / 3 + 1 / 2) / 2, 0])

@@ -301,3 +301,24 @@ def test_grouped_sampling_is_seeded_and_none_without_eligible_samples():
     assert history.sample_grouped(8, 2, exclude_policy=0) is None
     history.add_record(_record(1))  # a policy without samples yet is never drawn
     assert set(history.sample_grouped(64, 8)[2].tolist()) == {0}
+
+
+def test_grouped_sampling_after_evictions_a_sampleless_record_and_a_reload(tmp_path):
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, buffer_size=250, max_policies=4, seed=0)
+    for i, n in enumerate([100, 100, 0, 100, 80]):  # policy 2 gets no samples; the ring wraps, then 0 is evicted
+        pid = history.add_record(_record(i))
+        if n:
+            history.add_samples(np.full((n, 3), i, np.float32), np.full(n, float(i)), pid)
+    assert history.policy_ids == [1, 2, 3, 4] and [history.sample_count(p) for p in (1, 2, 3, 4)] == [70, 0, 100, 80]
+    batches = [history.sample_grouped(20, 2, exclude_policy=4) for _ in range(2000)]
+    ids = np.concatenate([b[2] for b in batches])
+    np.testing.assert_allclose([np.mean(ids == 1), np.mean(ids == 3)], [70 / 170, 100 / 170], atol=0.02)
+    for observations, targets, policy_ids in batches:
+        np.testing.assert_array_equal(observations[:, 0], policy_ids)
+        np.testing.assert_array_equal(targets, policy_ids)
+    # a reloaded history draws the same batches (records, counts and the sampling RNG's state travel)
+    history.save(tmp_path / "h")
+    loaded = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, buffer_size=250, max_policies=4).load(tmp_path / "h")
+    for _ in range(5):
+        for got, want in zip(loaded.sample_grouped(16, 4, exclude_policy=4), history.sample_grouped(16, 4, exclude_policy=4)):
+            np.testing.assert_array_equal(got, want)

@@ -9,7 +9,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_pevfa import REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
+from sb3_pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa.buffers import PeVFARolloutBuffer
 from sb3_pevfa.pevfa.fast_path import flat_observations
 from sb3_pevfa.pevfa.records import ActorLayout
@@ -260,6 +260,23 @@ def test_without_rollout_gradient_the_on_policy_update_reads_the_moved_encoder_a
     chis = [call[1] for call in calls if call[0] == "chi"]
     assert len(chis) >= 4 and all(th.equal(chi, expected) and not chi.requires_grad for chi in chis)  # ... chi is theirs
     assert th.equal(calls[-1][1], encoder)  # and the on-policy update left it
+
+
+def test_the_encoder_learns_from_the_rollout_where_nothing_else_trains_it():
+    """``rollout_encoder_gradient=None`` (default): off while historical updates train the encoder, on without them
+    (``history_train_freq=0``), where the encoder would otherwise never learn; an explicit value wins, also when it
+    is changed on a built model."""
+    assert not PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).trains_encoder_on_rollout
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **{**FAST, "history_train_freq": 0})
+    assert model.trains_encoder_on_rollout and model.policy.behaviour_chi_gradient
+    encoder = module_parameters(model.policy.representation)
+    model.learn(128)
+    assert not th.equal(module_parameters(model.policy.representation), encoder)  # the on-policy loss trained it
+    model.rollout_encoder_gradient = False
+    encoder = module_parameters(model.policy.representation)
+    model.learn(128, reset_num_timesteps=False)
+    assert not model.policy.behaviour_chi_gradient
+    assert th.equal(module_parameters(model.policy.representation), encoder)  # nothing trains it now
 
 
 def test_critic_frozen_for_actor_update_in_critic_first_order(csv_logger):
@@ -725,3 +742,11 @@ def test_logs_that_show_whether_the_critic_tells_policies_apart(csv_logger):
     with th.no_grad():
         head.embedding_net[0].weight.zero_()
     assert model.value_chi_gradient() == 0.0
+
+
+def test_a_model_loads_with_the_papers_schedule(tmp_path):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    model.save(tmp_path / "model")
+    loaded = PPOPeVFA.load(tmp_path / "model", **PAPER_SCHEDULE)  # e.g. a model saved before the cheaper schedule
+    assert {name: getattr(loaded, name) for name in PAPER_SCHEDULE} == PAPER_SCHEDULE
+    assert loaded.policy.behaviour_chi_gradient

@@ -119,7 +119,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 stacklevel=3,  # the user's constructor call
             )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
-        self.policy.behaviour_chi_gradient = self.rollout_encoder_gradient
+        self.policy.behaviour_chi_gradient = self.trains_encoder_on_rollout
         self._critic_params = list(self.policy.critic_parameters())
         critic_ids = {id(p) for p in self._critic_params}
         # what a critic-only step must leave alone: a features extractor shared with the actor (CnnPolicy)
@@ -132,6 +132,14 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "history", "recorder", "_critic_params", "_shared_params"]
+
+    @property
+    def trains_encoder_on_rollout(self) -> bool:
+        """Whether the on-policy value loss trains the encoder: ``rollout_encoder_gradient``, or where it is None,
+        only without historical updates (they would otherwise be the encoder's only value-loss gradient)."""
+        if self.rollout_encoder_gradient is None:
+            return self.history_train_freq == 0
+        return bool(self.rollout_encoder_gradient)
 
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
         super()._update_learning_rate(optimizers)
@@ -300,6 +308,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         super().train()  # type: ignore[safe-super]
 
     def train(self) -> None:
+        self.policy.behaviour_chi_gradient = self.trains_encoder_on_rollout  # an attribute changed since is honoured
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         objective_metrics = self._train_objectives()

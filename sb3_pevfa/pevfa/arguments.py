@@ -100,9 +100,11 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
     k = arguments["history_batch_policies"]
     if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0):
         raise ValueError(f"history_batch_policies must be None (uniform samples, the paper's) or a positive int, got {k!r}")
-    for name in ("rollout_encoder_gradient", "fast_path"):
-        if not isinstance(arguments[name], (bool, np.bool_)):
-            raise TypeError(f"{name} must be a bool, got {arguments[name]!r}")
+    if not isinstance(arguments["fast_path"], (bool, np.bool_)):
+        raise TypeError(f"fast_path must be a bool, got {arguments['fast_path']!r}")
+    gradient = arguments["rollout_encoder_gradient"]
+    if gradient is not None and not isinstance(gradient, (bool, np.bool_)):
+        raise TypeError(f"rollout_encoder_gradient must be a bool or None, got {gradient!r}")
     lr = arguments["critic_learning_rate"]
     if lr is not None and not callable(lr) and (not isinstance(lr, (int, float)) or not np.isfinite(lr) or lr <= 0):
         raise ValueError(f"critic_learning_rate must be a positive finite float, a schedule or None, got {lr!r}")

@@ -179,6 +179,7 @@ class PolicyHistory:
         self._policies: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
         self._record_info: dict[int, dict[str, int | float]] = {}
         self._sample_counts: dict[int, int] = {}
+        self._cumulative_counts: np.ndarray | None = None  # of _sample_counts, for sample_grouped; None: stale
         self._next_id = 0
         self._record_nbytes = 0  # kept up to date: summing 10k records at every iteration is not free
 
@@ -246,6 +247,7 @@ class PolicyHistory:
         self._record_nbytes += sum(array.nbytes for array in self._policies[policy_id].values())
         self._record_info[policy_id] = dict(info)
         self._sample_counts[policy_id] = 0
+        self._cumulative_counts = None
         while len(self._policies) > self.max_policies:
             oldest = next(iter(self._policies))
             self._forget_samples(self._samples.drop_front(self._sample_counts[oldest]))
@@ -280,6 +282,7 @@ class PolicyHistory:
     def _forget_samples(self, dropped: dict[str, np.ndarray]) -> None:
         if not dropped:
             return
+        self._cumulative_counts = None
         ids, counts = np.unique(dropped["policy_ids"], return_counts=True)
         for policy_id, count in zip(ids.tolist(), counts.tolist()):
             self._sample_counts[policy_id] -= count
@@ -344,6 +347,7 @@ class PolicyHistory:
         if self.transitions:
             self._bootstraps[policy_id] = bootstrap
         self._sample_counts[policy_id] += min(len(targets), self.buffer_size)
+        self._cumulative_counts = None
 
     def _obs_rows(self, observations: ObsBatch) -> list[tuple[str, np.ndarray, tuple[tuple[int, ...], np.dtype]]]:
         """``(storage name, array, spec)`` of each observation field, reshaped to ``(-1, *shape)``."""
@@ -382,8 +386,11 @@ class PolicyHistory:
         within each, so every eligible sample has the same chance per slot as in :meth:`sample`: the expected loss
         is the same, and a batch reads at most ``n_policies`` records instead of up to ``batch_size``.
         """
-        counts = np.fromiter(self._sample_counts.values(), dtype=np.int64, count=len(self._sample_counts))
-        ends = np.cumsum(counts)  # the FIFO is ordered by policy: each policy's samples are contiguous
+        if self._cumulative_counts is None:
+            counts = np.fromiter(self._sample_counts.values(), dtype=np.int64, count=len(self._sample_counts))
+            self._cumulative_counts = np.cumsum(counts)  # the FIFO is ordered by policy: its samples are contiguous
+        ends = self._cumulative_counts
+        counts = np.diff(ends, prepend=0)
         n_valid = self._samples.size
         if exclude_policy is not None and exclude_policy == self.latest_policy_id:
             n_valid -= counts[-1]  # the latest policy's samples are the newest: the eligible ones are [0, n_valid)

@@ -262,7 +262,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         """SB3's evaluate_actions (values, log-probabilities, entropy) with values V(s, chi).
 
         :param chi: As in :meth:`forward`; in training mode the behaviour policy's chi is recomputed with gradient,
-            so the value loss trains the encoder (E2E)
+            so the value loss trains the encoder (E2E), unless :attr:`behaviour_chi_gradient` is False (the algorithm's
+            ``rollout_encoder_gradient``): then it is the cached chi, without gradient
         """
         latent_pi, latent_vf = self._latents(obs)
         values = self._values(latent_vf, chi)
@@ -320,12 +321,18 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
 
     def behaviour_embedding(self) -> th.Tensor:
         """chi of the behaviour policy, ``(1, embedding_dim)``: recomputed (with gradient) while the critic trains
-        (unless :attr:`behaviour_chi_gradient` is False), cached otherwise (rollouts, evaluation, frozen critic)."""
+        (unless :attr:`behaviour_chi_gradient` is False), cached otherwise (rollouts, evaluation, frozen critic),
+        computed with the representation in evaluation mode (SPR: all pairs)."""
         if self.training and self.critic_trainable and self.behaviour_chi_gradient:
             return self.embed(self.behaviour_record())
         if self._embedding_cache is None:
-            with th.no_grad():
-                embedding = self.embed(self.behaviour_record())
+            representation_mode = self.representation.training
+            self.representation.train(False)  # the cached chi reads all of SPR's pairs, as the rollout's values did
+            try:
+                with th.no_grad():
+                    embedding = self.embed(self.behaviour_record())
+            finally:
+                self.representation.train(representation_mode)
             if not bool(self.has_behaviour):
                 return embedding
             self._embedding_cache = embedding

@@ -62,7 +62,8 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param history_target_refresh: Iterations between two recomputations of the historical targets
     :param rollout_encoder_gradient: The value loss on the rollout also trains the encoder (chi of the behaviour
         policy recomputed with gradient per minibatch, as the paper's E2E); False: that chi is computed once per
-        update without gradient, and the encoder learns from the historical updates and the objectives
+        update without gradient, and the encoder learns from the historical updates and the objectives; None
+        (default): False where historical updates run (``history_train_freq > 0``), else True
     :param fast_path: Critic values batched after each rollout, the actor alone acting
         (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
         SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
@@ -115,7 +116,7 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
-        rollout_encoder_gradient: bool = False,
+        rollout_encoder_gradient: bool | None = None,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
