@@ -1,3 +1,5 @@
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
+from sb3_pevfa.pevfa import normalization
 from sb3_pevfa.pevfa.buffers import PeVFARolloutBuffer
 from sb3_pevfa.pevfa.fast_path import flat_observations
 from sb3_pevfa.pevfa.records import ActorLayout
@@ -49,18 +52,97 @@ def test_dict_observations(representation):
 
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_vectorized_and_normalized_envs(representation):
+    """Under VecNormalize the history keeps the raw observations (Pendulum's (cos, sin) on the unit circle) and the
+    reward scale of each target, and hands them out in today's statistics: exactly what the env gives now."""
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=4, seed=0))
     model = PPOPeVFA("MlpPolicy", env, representation=representation, **{**FAST, "n_steps": 32})
     model.learn(384)
-    assert model.history.n_samples == 384 and model.history.n_policies == 4
-    # the last rollout's samples are the (normalised) observations the policy saw and the rollout's value targets; the
-    # buffer is env-major after PPO's update, the history keeps the rollout's step-major order
-    buffer = model.rollout_buffer
-    obs, targets, ids = model.history.samples()
+    history, buffer = model.history, model.rollout_buffer
+    assert history.renormalize and history.n_samples == 384 and history.n_policies == 4
+    raw_obs, raw_targets, ids = history.samples(raw=True)
+    np.testing.assert_allclose(np.hypot(raw_obs[:, 0], raw_obs[:, 1]), 1.0, rtol=1e-5)  # Pendulum's raw (cos, sin)
+    # a rollout with frozen statistics: its samples read back as the rollout buffer holds them (step-major there,
+    # env-major in the buffer after PPO's update), the targets as the rollout's returns
+    env.training = False
+    model.learn(128, reset_num_timesteps=False)
+    obs, targets, ids = history.samples()
     np.testing.assert_array_equal(obs[-128:], buffer.observations.reshape(4, 32, 3).swapaxes(0, 1).reshape(-1, 3))
     np.testing.assert_array_equal(targets[-128:], buffer.returns.reshape(4, 32).T.reshape(-1))
-    assert set(ids[-128:]) == {model.history.policy_ids[-2]}  # the policy that collected them (the last is the final)
-    assert not np.allclose(np.hypot(obs[:, 0], obs[:, 1]), 1.0, atol=1e-2)  # not Pendulum's raw (cos, sin)
+    assert set(ids[-128:]) == {history.policy_ids[-2]}  # the policy that collected them (the last is the final)
+    # statistics moved since: every read is in the new ones
+    raw_obs, raw_targets, _ = history.samples(raw=True)
+    scales = history._samples.get(np.arange(history.n_samples))["reward_scales"]
+    env.obs_rms.mean += 0.5
+    env.obs_rms.var *= 2.0
+    env.ret_rms.var *= 4.0
+    obs, targets, _ = history.samples()
+    np.testing.assert_array_equal(obs, env.normalize_obs(raw_obs))
+    np.testing.assert_allclose(targets, raw_targets * scales / np.sqrt(env.ret_rms.var + env.epsilon), rtol=1e-6)
+    batch_obs, batch_targets, _ = history.sample_grouped(64, 4)
+    assert np.isin(batch_obs, obs).all(axis=1).all() and np.isin(batch_targets, targets).all()
+    if representation == "spr":  # the probe states of every record: raw, read in today's statistics
+        raw_states = history.records(history.policy_ids, raw=True)["states"]
+        np.testing.assert_allclose(np.hypot(raw_states[..., 0], raw_states[..., 1]), 1.0, rtol=1e-5)
+        states = history.records(history.policy_ids)["states"]
+        np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
+
+
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_dict_observations_under_vec_normalize_with_some_keys(representation, monkeypatch):
+    """``norm_obs_keys``: the normalised key reads in today's statistics, the other stays raw; SPR's Dict probe
+    states cannot be re-expressed and keep their record's normalisation (docs/history.md)."""
+    env = VecNormalize(make_vec_env(DictPendulum, n_envs=2, seed=0), norm_obs_keys=["speed"])
+    monkeypatch.setattr(normalization, "_warned", set())  # announced once per process: as if this were the first
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = PPOPeVFA("MultiInputPolicy", env, representation=representation, **FAST).learn(192)
+    stale = [w for w in caught if "keep the normalisation of their record" in str(w.message)]
+    assert len(stale) == (representation == "spr")
+    raw, _, _ = model.history.samples(raw=True)
+    np.testing.assert_allclose(np.hypot(raw["angle"][:, 0], raw["angle"][:, 1]), 1.0, rtol=1e-5)
+    assert np.abs(raw["speed"]).max() <= 8.0
+    env.obs_rms["speed"].mean += 1.0
+    obs, _, _ = model.history.samples()
+    np.testing.assert_array_equal(obs["angle"], raw["angle"])
+    np.testing.assert_array_equal(obs["speed"], env.normalize_obs(raw)["speed"])
+    assert not model.history.raw_states
+
+
+def test_a_history_under_a_loaded_vec_normalize(tmp_path):
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, **FAST).learn(256)
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
+    env.save(tmp_path / "statistics.pkl")
+    expected = model.history.samples()
+    loaded_env = VecNormalize.load(tmp_path / "statistics.pkl", make_vec_env("Pendulum-v1", n_envs=2, seed=1))
+    loaded = PPOPeVFA.load(tmp_path / "model", env=loaded_env)
+    loaded.load_history(tmp_path / "history")
+    assert loaded.history.renormalize and loaded.history.normalizer is loaded_env
+    for got, want in zip(loaded.history.samples(), expected):
+        np.testing.assert_array_equal(got, want)
+    loaded.learn(64, reset_num_timesteps=False)
+    assert loaded.history.n_policies == model.history.n_policies + 1
+    # raw observations do not go to a model without VecNormalize, nor to its env
+    plain = PPOPeVFA.load(tmp_path / "model", env=make_vec_env("Pendulum-v1", n_envs=2))
+    with pytest.raises(ValueError, match="renormalize"):
+        plain.load_history(tmp_path / "history")
+    with pytest.raises(ValueError, match="recorded with a VecNormalize"):
+        loaded.set_env(make_vec_env("Pendulum-v1", n_envs=2))
+    assert loaded.env is loaded_env  # the refused env did not replace it
+
+
+def test_a_vec_normalize_it_cannot_re_express_is_announced_once(monkeypatch):
+    class MyNormalize(VecNormalize):
+        pass
+
+    monkeypatch.setattr(normalization, "_warned", set())
+    with pytest.warns(UserWarning, match="MyNormalize is not SB3's VecNormalize: .* stay in the normalisation"):
+        model = PPOPeVFA("MlpPolicy", MyNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0)), **FAST)
+    assert not model.history.renormalize and model.history.normalizer is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        PPOPeVFA("MlpPolicy", MyNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0)), **FAST).learn(64)
 
 
 def _predictions(model, obs):

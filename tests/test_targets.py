@@ -6,6 +6,8 @@ import pytest
 import torch as th
 from conftest import FAST
 from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa.history import PolicyHistory
@@ -78,25 +80,38 @@ def test_recomputing_with_the_rollouts_own_values_gives_its_returns(tmp_path, bu
         PolicyHistory(space, space, 2, 0, transitions=False).load(tmp_path / "h")
 
 
-def test_the_model_recomputes_historical_targets_with_each_policys_chi():
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", **FAST)
+@pytest.mark.parametrize("normalized", [False, True], ids=["plain", "vecnormalize"])
+def test_the_model_recomputes_historical_targets_with_each_policys_chi(normalized):
+    """By hand for one historical policy; under VecNormalize in the statistics of the moment of recomputation (they
+    are moved first): observations normalised anew, raw rewards through today's normalize_reward."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1, seed=0)) if normalized else "Pendulum-v1"
+    model = PPOPeVFA("MlpPolicy", env, history_targets="recomputed", **FAST)
     model.learn(256)
     history, policy = model.history, model.policy
+    all_rows = history._samples.get(np.arange(history.n_samples))
+    rewards = all_rows["rewards"]
+    if normalized:
+        assert (all_rows["raw_rewards"] <= 0).all() and (all_rows["raw_rewards"] > -16.3).all()  # Pendulum's raw
+        env.obs_rms.mean += 0.3
+        env.ret_rms.var *= 4.0
+        rewards = env.normalize_reward(all_rows["raw_rewards"]) + all_rows["raw_bootstraps"] / np.sqrt(
+            env.ret_rms.var + env.epsilon
+        )
     obs, frozen, ids = history.samples()
     assert model._refresh_history_targets() == int((ids != history.latest_policy_id).sum())
     _, targets, _ = history.samples()
     # by hand for one historical policy: its full rollout (64 steps, 1 env) under V(., chi of that policy)
     first = history.policy_ids[0]
     rows = ids == first
-    bootstrap = history._bootstraps[first]
+    last_obs = history._bootstraps[first]["obs"]
+    last_obs = env.normalize_obs(last_obs) if normalized else last_obs
     policy.set_training_mode(False)
     with th.no_grad():
         chi = policy.embed(PolicyRecord.from_numpy(history.records([first])))
         values = policy.predict_values(th.as_tensor(obs[rows]), chi).numpy().reshape(64, 1)
-        last = policy.predict_values(th.as_tensor(bootstrap["obs"]), chi).numpy().reshape(1)
-    all_rows = history._samples.get(np.arange(history.n_samples))
-    returns = lambda_returns(all_rows["rewards"][rows].reshape(64, 1), values, all_rows["episode_starts"][rows].reshape(64, 1),
-                             last, bootstrap["last_episode_starts"], model.gamma, model.gae_lambda)  # fmt: skip
+        last = policy.predict_values(th.as_tensor(last_obs), chi).numpy().reshape(1)
+    starts, last_starts = all_rows["episode_starts"][rows].reshape(64, 1), history._bootstraps[first]["last_episode_starts"]
+    returns = lambda_returns(rewards[rows].reshape(64, 1), values, starts, last, last_starts, model.gamma, model.gae_lambda)
     np.testing.assert_allclose(targets[rows], returns.reshape(-1), rtol=1e-5, atol=1e-6)
     assert not np.allclose(targets[rows], frozen[rows])
 

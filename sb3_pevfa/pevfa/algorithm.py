@@ -28,15 +28,16 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.history import PolicyHistory
+from sb3_pevfa.pevfa.normalization import RolloutRecorder, renormalizable, warn_once
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -98,6 +99,25 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.critic_lr_schedule = (
             self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         )
+        self._make_history()
+        if self.history.max_nbytes > HISTORY_MEMORY_WARNING_BYTES:
+            warnings.warn(
+                f"The policy history can grow to {self.history.max_nbytes / 2**30:.1f} GiB (history_buffer_size="
+                f"{self.history_buffer_size} samples, history_max_policies={self.history_max_policies} records); lower "
+                "them, or n_state_action_pairs, to bound it",
+                stacklevel=3,  # the user's constructor call
+            )
+        self.policy.behaviour_chi_gradient = self.trains_encoder_on_rollout
+        self._critic_params = list(self.policy.critic_parameters())
+        critic_ids = {id(p) for p in self._critic_params}
+        # what a critic-only step must leave alone: a features extractor shared with the actor (CnnPolicy)
+        self._shared_params = [p for p in self.policy.optimizer.param_groups[0]["params"] if id(p) not in critic_ids]
+
+    def _make_history(self) -> None:
+        """A new, empty history (and its recorder); under SB3's ``VecNormalize`` it keeps raw observations and hands
+        them out in today's statistics (:mod:`~sb3_pevfa.pevfa.normalization`)."""
+        vec_normalize = self.get_vec_normalize_env()
+        renormalize = renormalizable(vec_normalize)
         self.history = PolicyHistory(
             self.observation_space,
             self.action_space,
@@ -110,20 +130,33 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             representation=self.representation,
             layout=self.policy.layout,
             transitions=self.history_targets == "recomputed",
+            renormalize=renormalize,
         )
-        if self.history.max_nbytes > HISTORY_MEMORY_WARNING_BYTES:
-            warnings.warn(
-                f"The policy history can grow to {self.history.max_nbytes / 2**30:.1f} GiB (history_buffer_size="
-                f"{self.history_buffer_size} samples, history_max_policies={self.history_max_policies} records); lower "
-                "them, or n_state_action_pairs, to bound it",
-                stacklevel=3,  # the user's constructor call
+        self.history.normalizer = vec_normalize if renormalize else None
+        if renormalize and self.history.n_state_action_pairs and not self.history.raw_states:
+            warn_once(
+                "state-action pairs",
+                f"Under VecNormalize, the state-action pairs of {self.observation_space} observations keep the "
+                "normalisation of their record (only those of plain Box observations are re-expressed)",
             )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
-        self.policy.behaviour_chi_gradient = self.trains_encoder_on_rollout
-        self._critic_params = list(self.policy.critic_parameters())
-        critic_ids = {id(p) for p in self._critic_params}
-        # what a critic-only step must leave alone: a features extractor shared with the actor (CnnPolicy)
-        self._shared_params = [p for p in self.policy.optimizer.param_groups[0]["params"] if id(p) not in critic_ids]
+        self._raw_rollout: RolloutRecorder | None = None
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """SB3's ``set_env``; the history follows the new env's ``VecNormalize`` (a ``VecNormalize.load`` of the same
+        run: its statistics). A history of raw observations cannot go to an env without one, nor the other way."""
+        vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
+        renormalize = renormalizable(vec_normalize)
+        if renormalize != self.history.renormalize and self.history.n_policies:  # checked before anything changes
+            raise ValueError(
+                f"The policy history was recorded {'with' if self.history.renormalize else 'without'} a VecNormalize "
+                f"env and the new env {'has one' if renormalize else 'has none'}: its observations cannot be "
+                "re-expressed; wrap the env as it was (VecNormalize.load of the run's statistics)"
+            )
+        super().set_env(env, force_reset=force_reset)
+        if renormalize != self.history.renormalize:
+            self._make_history()
+        self.history.normalizer = vec_normalize if renormalize else None
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -131,7 +164,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         return state_dicts, variables
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params", "_shared_params"]
+        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params", "_shared_params", "_raw_rollout"]
 
     @property
     def trains_encoder_on_rollout(self) -> bool:
@@ -155,8 +188,9 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         policy: the one whose chi the rollout's values use. Returns its id."""
         assert self._last_obs is not None, "No previous observation was provided"
         self.policy.set_training_mode(False)  # as SB3's rollouts: batch norm and dropout in evaluation mode
+        observations = self.history.normalizer.get_original_obs() if self.history.renormalize else self._last_obs
         policy_id = self.recorder.record(
-            self.policy, self._last_obs, n_updates=self._n_updates, num_timesteps=self.num_timesteps
+            self.policy, observations, n_updates=self._n_updates, num_timesteps=self.num_timesteps
         )
         record = PolicyRecord.from_numpy(self.history.records([policy_id]), self.device)
         self.policy.set_behaviour_record(record)
@@ -167,18 +201,27 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
     ) -> bool:
         policy_id = self.record_behaviour_policy()
         self._rollout_episode_returns = []
+        self._raw_rollout = RolloutRecorder(self.history.normalizer) if self.history.renormalize else None
         if self.fast_path:
             complete = fast_path.collect_rollouts(self, env, callback, rollout_buffer, n_rollout_steps)
         else:
             complete = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
         if complete:
             self.recorder.add_rollout(
-                rollout_buffer, policy_id, self._rollout_episode_returns, self._last_obs, self._last_episode_starts
+                rollout_buffer,
+                policy_id,
+                self._rollout_episode_returns,
+                self._last_obs,
+                self._last_episode_starts,
+                raw=self._raw_rollout,
             )
+        self._raw_rollout = None
         return complete
 
     def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
         super()._update_info_buffer(infos, dones)
+        if self._raw_rollout is not None:
+            self._raw_rollout.step()
         self._rollout_episode_returns.extend(info["episode"]["r"] for info in infos if "episode" in info)
 
     # ------------------------------------------------------------------ training

@@ -11,17 +11,20 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape, is_image_space
+from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_pevfa.pevfa.normalization import reward_scale
 from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, state_dim
 from sb3_pevfa.pevfa.targets import lambda_returns
 
 #: Version of the file format written by :meth:`PolicyHistory.save`.
-HISTORY_FORMAT_VERSION = 3
-#: Versions :meth:`PolicyHistory.load` reads (1: records were called ``policy/<field>``; 2: no transitions).
-_READABLE_VERSIONS = (1, 2, 3)
+HISTORY_FORMAT_VERSION = 4
+#: Versions :meth:`PolicyHistory.load` reads (1: records were called ``policy/<field>``; 2: no transitions; 3: no
+#: raw observations for VecNormalize).
+_READABLE_VERSIONS = (1, 2, 3, 4)
 #: Signature entries that older files lack, and the value they then mean
-_SIGNATURE_DEFAULTS = {"transitions": False}
+_SIGNATURE_DEFAULTS = {"transitions": False, "renormalize": False}
 
 ObsBatch = np.ndarray | dict[str, np.ndarray]
 
@@ -117,6 +120,8 @@ class PolicyHistory:
     :param layout: The actor's parameter layout (every layer's shape is checked on load)
     :param transitions: Also keep each sample's reward and episode start, and each rollout's last observations, so
         that value targets can be recomputed (:meth:`recompute_targets`)
+    :param renormalize: Keep raw observations and each sample's reward scale, and hand everything out in the
+        statistics of :attr:`normalizer` (a ``VecNormalize``) at the time of reading (:mod:`~sb3_pevfa.pevfa.normalization`)
     """
 
     def __init__(
@@ -132,6 +137,7 @@ class PolicyHistory:
         representation: str | None = None,
         layout: ActorLayout | None = None,
         transitions: bool = False,
+        renormalize: bool = False,
     ):
         for name, value in (("buffer_size", buffer_size), ("max_policies", max_policies)):
             if not isinstance(value, (int, np.integer)) or value <= 0:
@@ -150,6 +156,12 @@ class PolicyHistory:
             raise ValueError(f"n_params={n_params} does not match the actor layout's {layout.n_params}")
         self.layout = layout
         self.transitions = bool(transitions)
+        self.renormalize = bool(renormalize)
+        #: The VecNormalize whose statistics reads are expressed in (``renormalize``; set by the algorithm)
+        self.normalizer: VecNormalize | None = None
+        #: SPR probe states are stored raw (``renormalize``) where they are the observation itself (a non-image Box)
+        box = isinstance(observation_space, spaces.Box) and not is_image_space(observation_space)
+        self.raw_states = self.renormalize and box
         self.rng = np.random.default_rng(seed)
         self._obs_keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
         self.reset()
@@ -173,6 +185,11 @@ class PolicyHistory:
         if self.transitions:
             specs["rewards"] = ((), np.dtype(np.float32))
             specs["episode_starts"] = ((), np.dtype(np.float32))
+        if self.renormalize:
+            specs["reward_scales"] = ((), np.dtype(np.float32))
+            if self.transitions:
+                specs["raw_rewards"] = ((), np.dtype(np.float32))
+                specs["raw_bootstraps"] = ((), np.dtype(np.float32))
         self._samples = _Ring(specs, self.buffer_size)
         #: per policy: the observations after its rollout and whether they start episodes (``transitions``)
         self._bootstraps: dict[int, dict[str, np.ndarray]] = {}
@@ -200,6 +217,7 @@ class PolicyHistory:
             "actor_linear_shapes": None if self.layout is None else [list(shape) for shape in self.layout.linear_shapes],
             "actor_log_std_shape": None if self.layout is None else list(self.layout.log_std_shape),
             "transitions": self.transitions,
+            "renormalize": self.renormalize,
         }
 
     # ------------------------------------------------------------------ policies
@@ -261,9 +279,13 @@ class PolicyHistory:
         ids = np.fromiter(self._policies, dtype=np.int64, count=len(self._policies))
         return ids if n >= len(ids) else self.rng.choice(ids, size=n, replace=False)
 
-    def records(self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS) -> dict[str, np.ndarray]:
+    def records(
+        self, policy_ids: np.ndarray | list[int], fields: tuple[str, ...] = RECORD_FIELDS, raw: bool = False
+    ) -> dict[str, np.ndarray]:
         """Stacked records of the given policies: ``{field: (P, ...)}``; fields not in ``fields`` are left empty
-        (size 0 along their first data axis), which saves copying what a representation does not read."""
+        (size 0 along their first data axis), which saves copying what a representation does not read.
+
+        :param raw: SPR's probe states as stored (raw under ``renormalize``), not in today's statistics"""
         records = [self._policies[int(pid)] for pid in policy_ids]
         data = {}
         for name in RECORD_FIELDS:
@@ -272,6 +294,10 @@ class PolicyHistory:
             else:
                 shape = records[0][name].shape
                 data[name] = np.zeros((len(records), 0, *shape[1:]), np.float32)
+        if self.raw_states and not raw and "states" in fields and data["states"].size:  # probe states, today's statistics
+            states = data["states"]
+            normalized = self.normalized(states.reshape(-1, *self.observation_space.shape))
+            data["states"] = np.asarray(normalized, np.float32).reshape(states.shape)
         return data
 
     # ------------------------------------------------------------------ samples
@@ -299,13 +325,21 @@ class PolicyHistory:
         last_observations: ObsBatch | None = None,
         last_episode_starts: np.ndarray | None = None,
         rollout_shape: tuple[int, int] | None = None,
+        reward_scales: np.ndarray | None = None,
+        raw_rewards: np.ndarray | None = None,
+        raw_bootstraps: np.ndarray | None = None,
     ) -> None:
         """Append samples of one policy. Observations have a leading batch axis (any extra leading axes are flattened).
 
         With ``transitions``, also the rollout's ``rewards`` and ``episode_starts`` ``(n_steps, n_envs)`` (the
         observations in the same step-major order) and the ``last_observations`` / ``last_episode_starts`` of its
         ``n_envs`` environments after the last step; ``rollout_shape`` (default: the rewards' shape) says which
-        rollout the samples end, if they are only its last steps."""
+        rollout the samples end, if they are only its last steps.
+
+        With ``renormalize``, the observations are raw, and ``reward_scales`` gives the reward scale each target is in;
+        with transitions also, ``raw_rewards`` and ``raw_bootstraps`` (the time-limit bootstraps folded into
+        ``rewards``, in raw reward units)."""
+        renormalized = self._renormalize_rows(reward_scales, raw_rewards, raw_bootstraps)
         given = [x is not None for x in (rewards, episode_starts, last_observations, last_episode_starts)]
         if any(given) != self.transitions or (self.transitions and not all(given)):
             raise ValueError(
@@ -326,6 +360,10 @@ class PolicyHistory:
                 raise ValueError(f"{len(rows[name])} observations for {len(targets)} targets")
         rows["targets"] = targets
         rows["policy_ids"] = np.full(len(targets), policy_id, dtype=np.int64)
+        for name, array in renormalized.items():
+            if len(array) != len(targets):
+                raise ValueError(f"{len(array)} {name} for {len(targets)} targets")
+            rows[name] = array
         if self.transitions:
             rewards = np.asarray(rewards, dtype=np.float32)
             shape = tuple(int(n) for n in (rewards.shape if rollout_shape is None else rollout_shape))
@@ -349,6 +387,20 @@ class PolicyHistory:
         self._sample_counts[policy_id] += min(len(targets), self.buffer_size)
         self._cumulative_counts = None
 
+    def _renormalize_rows(self, *arrays: np.ndarray | None) -> dict[str, np.ndarray]:
+        """The sample fields of ``renormalize`` (reward scales; raw rewards and bootstraps with transitions), checked."""
+        names = ("reward_scales", "raw_rewards", "raw_bootstraps")
+        wanted = [self.renormalize, self.renormalize and self.transitions, self.renormalize and self.transitions]
+        if [array is not None for array in arrays] != wanted:
+            raise ValueError(
+                "reward_scales (and, with transitions, raw_rewards and raw_bootstraps) go with a history that "
+                f"renormalizes, and only there; this one has renormalize={self.renormalize}, transitions={self.transitions}"
+            )
+        fields = {name: np.asarray(a, np.float32).reshape(-1) for name, a in zip(names, arrays) if a is not None}
+        for name, array in fields.items():
+            _check_finite(array, name)
+        return fields
+
     def _obs_rows(self, observations: ObsBatch) -> list[tuple[str, np.ndarray, tuple[tuple[int, ...], np.dtype]]]:
         """``(storage name, array, spec)`` of each observation field, reshaped to ``(-1, *shape)``."""
         fields = []
@@ -362,6 +414,25 @@ class PolicyHistory:
             return rows["obs"]
         return {key: rows[f"obs/{key}"] for key in self._obs_keys}
 
+    def _require_normalizer(self) -> VecNormalize:
+        if self.normalizer is None:
+            raise ValueError(
+                "This history keeps raw observations for a VecNormalize env (renormalize=True), but none is attached "
+                "(history.normalizer): give the model its VecNormalize env (VecNormalize.load) before it reads the history"
+            )
+        return self.normalizer
+
+    def normalized(self, observations: ObsBatch) -> ObsBatch:
+        """Stored (raw) observations in today's statistics (unchanged unless ``renormalize``)."""
+        return self._require_normalizer().normalize_obs(observations) if self.renormalize else observations
+
+    def _current(self, rows: dict[str, np.ndarray]) -> tuple[ObsBatch, np.ndarray]:
+        """Observations and value targets of ``rows`` in today's statistics (as stored unless ``renormalize``)."""
+        if not self.renormalize:
+            return self._observations(rows), rows["targets"]
+        ratio = rows["reward_scales"] / np.float32(reward_scale(self._require_normalizer()))
+        return self.normalized(self._observations(rows)), (rows["targets"] * ratio).astype(np.float32)
+
     def sample(self, batch_size: int, exclude_policy: int | None = None) -> tuple[ObsBatch, np.ndarray, np.ndarray] | None:
         """Uniform mini-batch ``(observations, targets, policy_ids)``, or None when no sample is eligible.
 
@@ -374,7 +445,7 @@ class PolicyHistory:
         if n_valid <= 0:
             return None
         rows = self._samples.get(self.rng.integers(n_valid, size=batch_size))
-        return self._observations(rows), rows["targets"], rows["policy_ids"]
+        return *self._current(rows), rows["policy_ids"]
 
     def sample_grouped(
         self, batch_size: int, n_policies: int, exclude_policy: int | None = None
@@ -403,13 +474,16 @@ class PolicyHistory:
         offsets = self.rng.random(batch_size) * np.repeat(counts[chosen], per_policy)
         logical = np.repeat(ends[chosen] - counts[chosen], per_policy) + offsets.astype(np.int64)
         rows = self._samples.get(logical)
-        return self._observations(rows), rows["targets"], rows["policy_ids"]
+        return *self._current(rows), rows["policy_ids"]
 
-    def sample_observations(self, n: int) -> ObsBatch | None:
-        """``n`` observations drawn uniformly from the FIFO (probe states of SPR), or None if it is empty."""
+    def sample_observations(self, n: int, raw: bool = False) -> ObsBatch | None:
+        """``n`` observations drawn uniformly from the FIFO (probe states of SPR), or None if it is empty.
+
+        :param raw: As stored (raw under ``renormalize``) instead of in today's statistics"""
         if self._samples.size == 0:
             return None
-        return self._observations(self._samples.get(self.rng.integers(self._samples.size, size=n)))
+        observations = self._observations(self._samples.get(self.rng.integers(self._samples.size, size=n)))
+        return observations if raw else self.normalized(observations)
 
     def recompute_targets(
         self,
@@ -433,11 +507,15 @@ class PolicyHistory:
             return 0
         logical = np.concatenate([np.arange(start, start + count) for _, start, count in chosen])
         rows = self._samples.get(logical)
-        values = np.asarray(value_fn(self._observations(rows), rows["policy_ids"]), np.float32).reshape(-1)
+        values = np.asarray(value_fn(self.normalized(self._observations(rows)), rows["policy_ids"]), np.float32).reshape(-1)
         boots = [self._bootstraps[pid] for pid, _, _ in chosen]
         last_obs = {name: np.concatenate([b[name] for b in boots]) for name in self._obs_specs()}
         last_ids = np.concatenate([np.full(len(b["last_episode_starts"]), pid) for (pid, _, _), b in zip(chosen, boots)])
-        last_values = np.asarray(value_fn(self._observations(last_obs), last_ids), np.float32).reshape(-1)
+        last_values = np.asarray(value_fn(self.normalized(self._observations(last_obs)), last_ids), np.float32).reshape(-1)
+        rewards = rows["rewards"]
+        if self.renormalize:  # today's reward normalisation of the raw rewards, and the bootstraps rescaled
+            normalizer = self._require_normalizer()
+            rewards = normalizer.normalize_reward(rows["raw_rewards"]) + rows["raw_bootstraps"] / reward_scale(normalizer)
         # the rollouts of one shape go through one stacked recursion
         groups: dict[tuple[int, ...], list[tuple[slice, slice, dict[str, np.ndarray]]]] = {}
         offset, last_offset = 0, 0
@@ -454,7 +532,7 @@ class PolicyHistory:
                 return np.stack([_rollout_tail(array[part], shape) for part, _, _ in members])
 
             returns = lambda_returns(
-                stacked(rows["rewards"]),
+                stacked(rewards),
                 stacked(values),
                 stacked(rows["episode_starts"]),
                 np.stack([last_values[last] for _, last, _ in members]),
@@ -466,12 +544,17 @@ class PolicyHistory:
                 targets[part] = rollout.reshape(-1)[len(rollout.reshape(-1)) - (part.stop - part.start) :]
         _check_finite(targets, "recomputed value targets")
         self._samples.arrays["targets"][self._samples.positions(logical)] = targets
+        if self.renormalize:  # the new targets are in today's reward scale
+            self._samples.arrays["reward_scales"][self._samples.positions(logical)] = reward_scale(self._require_normalizer())
         return len(targets)
 
-    def samples(self) -> tuple[ObsBatch, np.ndarray, np.ndarray]:
-        """All samples, oldest first: ``(observations, targets, policy_ids)``."""
+    def samples(self, raw: bool = False) -> tuple[ObsBatch, np.ndarray, np.ndarray]:
+        """All samples, oldest first: ``(observations, targets, policy_ids)`` in today's statistics.
+
+        :param raw: As stored (raw observations, targets in the scale of their rollout, under ``renormalize``)"""
         rows = self._samples.get(np.arange(self._samples.size))
-        return self._observations(rows), rows["targets"], rows["policy_ids"]
+        observations, targets = (self._observations(rows), rows["targets"]) if raw else self._current(rows)
+        return observations, targets, rows["policy_ids"]
 
     # ------------------------------------------------------------------ bookkeeping
     @property
@@ -513,7 +596,7 @@ class PolicyHistory:
             "policy_ids": ids,
             "record_info": [self._record_info[pid] for pid in ids],
         }
-        arrays = {f"record/{name}": array for name, array in self.records(ids).items()} if ids else {}
+        arrays = {f"record/{name}": array for name, array in self.records(ids, raw=True).items()} if ids else {}
         arrays.update({f"sample/{name}": array for name, array in self._samples.get(np.arange(self.n_samples)).items()})
         for policy_id, bootstrap in self._bootstraps.items():
             arrays.update({f"bootstrap/{policy_id}/{name}": array for name, array in bootstrap.items()})
@@ -584,6 +667,11 @@ class PolicyHistory:
                         last_episode_starts=arrays[f"bootstrap/{policy_id}/last_episode_starts"],
                         rollout_shape=tuple(arrays[f"bootstrap/{policy_id}/rollout_shape"]),
                     )
+                if self.renormalize:
+                    transitions["reward_scales"] = arrays["sample/reward_scales"][mask]
+                    if self.transitions:
+                        transitions["raw_rewards"] = arrays["sample/raw_rewards"][mask]
+                        transitions["raw_bootstraps"] = arrays["sample/raw_bootstraps"][mask]
                 loaded.add_samples(observations, arrays["sample/targets"][mask], policy_id, **transitions)
         loaded._next_id = meta["next_id"]
         loaded.rng.bit_generator.state = meta["rng_state"]
