@@ -8,8 +8,9 @@ from conftest import AS_SB3, FAST, DictPendulum, actor_parameters, module_parame
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import FakeImageEnv
 from stable_baselines3.common.policies import ActorCriticPolicy
-from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.vec_env import VecFrameStack, VecNormalize
 
 from sb3_pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa import normalization
@@ -106,6 +107,24 @@ def test_dict_observations_under_vec_normalize_with_some_keys(representation, mo
     np.testing.assert_array_equal(obs["angle"], raw["angle"])
     np.testing.assert_array_equal(obs["speed"], env.normalize_obs(raw)["speed"])
     assert not model.history.raw_states
+
+
+def test_wrappers_that_change_observations_outside_vec_normalize_keep_the_old_behaviour(monkeypatch):
+    """Raw observations below a VecFrameStack (or SB3's own VecTransposeImage) are not what the policy reads: the
+    history keeps what the policy saw, and says so once."""
+    monkeypatch.setattr(normalization, "_warned", set())
+    stacked = VecFrameStack(VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0)), n_stack=2)
+    with pytest.warns(UserWarning, match="VecFrameStack outside VecNormalize changes the observations"):
+        model = PPOPeVFA("MlpPolicy", stacked, **FAST)
+    assert not model.history.renormalize
+    model.learn(128)
+    seen = model.rollout_buffer.observations.reshape(2, 64, 6).swapaxes(0, 1).reshape(-1, 6)  # env-major after PPO
+    np.testing.assert_array_equal(model.history.samples()[0][-128:], seen)  # the stacked, normalised frames
+    image_env = make_vec_env(lambda: FakeImageEnv(screen_height=36, screen_width=36, n_channels=1), n_envs=1)
+    images = VecNormalize(image_env, norm_obs=False)
+    model = PPOPeVFA("CnnPolicy", images, **{**FAST, "n_steps": 32, "batch_size": 16})
+    assert not model.history.renormalize  # SB3 put a VecTransposeImage outside it
+    model.learn(64)
 
 
 def test_a_history_under_a_loaded_vec_normalize(tmp_path):

@@ -92,6 +92,9 @@ def test_the_model_recomputes_historical_targets_with_each_policys_chi(normalize
     rewards = all_rows["rewards"]
     if normalized:
         assert (all_rows["raw_rewards"] <= 0).all() and (all_rows["raw_rewards"] > -16.3).all()  # Pendulum's raw
+        # SB3 folded gamma * V(terminal observation) into the reward of the step its 200-step time limit cut: that
+        # step alone has a bootstrap, and the rest of every reward is VecNormalize's own normalisation of the raw one
+        assert np.flatnonzero(all_rows["raw_bootstraps"]).tolist() == [199]
         env.obs_rms.mean += 0.3
         env.ret_rms.var *= 4.0
         rewards = env.normalize_reward(all_rows["raw_rewards"]) + all_rows["raw_bootstraps"] / np.sqrt(

@@ -30,14 +30,14 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.history import PolicyHistory
-from sb3_pevfa.pevfa.normalization import RolloutRecorder, renormalizable, warn_once
+from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize, warn_once
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -116,8 +116,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
     def _make_history(self) -> None:
         """A new, empty history (and its recorder); under SB3's ``VecNormalize`` it keeps raw observations and hands
         them out in today's statistics (:mod:`~sb3_pevfa.pevfa.normalization`)."""
-        vec_normalize = self.get_vec_normalize_env()
-        renormalize = renormalizable(vec_normalize)
+        vec_normalize = find_vec_normalize(self.env, self.observation_space)
+        renormalize = vec_normalize is not None
         self.history = PolicyHistory(
             self.observation_space,
             self.action_space,
@@ -132,7 +132,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             transitions=self.history_targets == "recomputed",
             renormalize=renormalize,
         )
-        self.history.normalizer = vec_normalize if renormalize else None
+        self.history.normalizer = vec_normalize
         if renormalize and self.history.n_state_action_pairs and not self.history.raw_states:
             warn_once(
                 "state-action pairs",
@@ -141,12 +141,14 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
         self._raw_rollout: RolloutRecorder | None = None
+        self._last_raw_obs: np.ndarray | dict | None = None  # raw of _last_obs (renormalize)
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; the history follows the new env's ``VecNormalize`` (a ``VecNormalize.load`` of the same
         run: its statistics). A history of raw observations cannot go to an env without one, nor the other way."""
-        vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
-        renormalize = renormalizable(vec_normalize)
+        wrapped = self._wrap_env(env, self.verbose) if isinstance(env, VecEnv) else None  # as SB3 will wrap it
+        vec_normalize = find_vec_normalize(wrapped, self.observation_space)
+        renormalize = vec_normalize is not None
         if renormalize != self.history.renormalize and self.history.n_policies:  # checked before anything changes
             raise ValueError(
                 f"The policy history was recorded {'with' if self.history.renormalize else 'without'} a VecNormalize "
@@ -156,7 +158,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         super().set_env(env, force_reset=force_reset)
         if renormalize != self.history.renormalize:
             self._make_history()
-        self.history.normalizer = vec_normalize if renormalize else None
+        self.history.normalizer = vec_normalize
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -164,7 +166,15 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         return state_dicts, variables
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "history", "recorder", "_critic_params", "_shared_params", "_raw_rollout"]
+        return [
+            *super()._excluded_save_params(),
+            "history",
+            "recorder",
+            "_critic_params",
+            "_shared_params",
+            "_raw_rollout",
+            "_last_raw_obs",
+        ]
 
     @property
     def trains_encoder_on_rollout(self) -> bool:
@@ -188,7 +198,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         policy: the one whose chi the rollout's values use. Returns its id."""
         assert self._last_obs is not None, "No previous observation was provided"
         self.policy.set_training_mode(False)  # as SB3's rollouts: batch norm and dropout in evaluation mode
-        observations = self.history.normalizer.get_original_obs() if self.history.renormalize else self._last_obs
+        observations = self._last_raw_obs if self.history.renormalize else self._last_obs
         policy_id = self.recorder.record(
             self.policy, observations, n_updates=self._n_updates, num_timesteps=self.num_timesteps
         )
@@ -201,7 +211,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
     ) -> bool:
         policy_id = self.record_behaviour_policy()
         self._rollout_episode_returns = []
-        self._raw_rollout = RolloutRecorder(self.history.normalizer) if self.history.renormalize else None
+        if self.history.renormalize:
+            self._raw_rollout = RolloutRecorder(self.history.normalizer, self._last_raw_obs)
         if self.fast_path:
             complete = fast_path.collect_rollouts(self, env, callback, rollout_buffer, n_rollout_steps)
         else:
@@ -218,10 +229,18 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._raw_rollout = None
         return complete
 
+    def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
+        last_obs = self._last_obs
+        result = super()._setup_learn(total_timesteps, *args, **kwargs)
+        if self.history.renormalize and (self._last_obs is not last_obs or self._last_raw_obs is None):
+            self._last_raw_obs = self.history.normalizer.get_original_obs()  # the env was reset: its raw observation
+        return result
+
     def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
         super()._update_info_buffer(infos, dones)
         if self._raw_rollout is not None:
             self._raw_rollout.step()
+            self._last_raw_obs = self._raw_rollout.observations[-1]
         self._rollout_episode_returns.extend(info["episode"]["r"] for info in infos if "episode" in info)
 
     # ------------------------------------------------------------------ training

@@ -18,7 +18,8 @@ observation (``VecNormalize.get_original_obs``) and the reward scale its target 
 import warnings
 
 import numpy as np
-from stable_baselines3.common.vec_env import VecNormalize
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
 
 _warned: set[str] = set()
 
@@ -28,11 +29,36 @@ def reward_scale(env: VecNormalize) -> float:
     return float(np.sqrt(env.ret_rms.var + env.epsilon)) if env.norm_reward else 1.0
 
 
-def renormalizable(env: VecNormalize | None) -> bool:
-    """Whether the history can keep raw data for ``env`` and re-express it: SB3's own ``VecNormalize`` only (a
-    subclass may normalise otherwise: it gets a warning, once, and the history keeps what the policy saw)."""
-    if env is None:
-        return False
+#: Wrappers that may sit outside the VecNormalize: they leave the observations as they are
+_TRANSPARENT_WRAPPERS = (VecMonitor, VecCheckNan)
+
+
+def find_vec_normalize(env: VecEnv | None, observation_space: spaces.Space) -> VecNormalize | None:
+    """The ``VecNormalize`` of ``env`` whose statistics the history can re-express, or None.
+
+    Only SB3's own class (a subclass may normalise otherwise), and only where every wrapper outside it leaves the
+    observations alone (``VecTransposeImage`` or ``VecFrameStack`` on top change what its raw observations mean):
+    otherwise a warning, once, and the history keeps what the policy saw."""
+    outer = []
+    while isinstance(env, VecEnvWrapper) and not isinstance(env, VecNormalize):
+        outer.append(env)
+        env = env.venv
+    if not isinstance(env, VecNormalize):
+        return None
+    changing = [type(wrapper).__name__ for wrapper in outer if not isinstance(wrapper, _TRANSPARENT_WRAPPERS)]
+    if changing or env.observation_space != observation_space:
+        warn_once(
+            "outer wrappers",
+            f"{', '.join(changing) or 'A wrapper'} outside VecNormalize changes the observations: PeVFA cannot "
+            "re-express them, so the history's observations, SPR probe states and value targets stay in the "
+            "normalisation of their own rollout (stale once the statistics move); put VecNormalize outermost",
+        )
+        return None
+    return env if renormalizable(env) else None
+
+
+def renormalizable(env: VecNormalize) -> bool:
+    """SB3's own ``VecNormalize`` (a subclass gets a warning, once)."""
     if type(env) is not VecNormalize:
         name = type(env).__name__
         warn_once(
@@ -56,19 +82,20 @@ class RolloutRecorder:
     """Raw observations, raw rewards and reward scales of one rollout, one step at a time.
 
     :param env: The ``VecNormalize`` of the model's env
+    :param first: The raw observation the first action is taken at (of the model's ``_last_obs``)
     """
 
-    def __init__(self, env: VecNormalize):
+    def __init__(self, env: VecNormalize, first: np.ndarray | dict):
         self.env = env
-        self.observations = [env.get_original_obs()]  # raw of the observation the first action is taken at
+        self.observations = [first]
         self.rewards: list[np.ndarray] = []
         self.scales: list[np.ndarray] = []
 
     def step(self) -> None:
         """Called after each ``env.step``: the raw new observation, the raw reward and the scale it was divided by."""
         self.observations.append(self.env.get_original_obs())
-        self.rewards.append(self.env.get_original_reward())
-        self.scales.append(np.full(self.env.num_envs, reward_scale(self.env), np.float32))
+        self.rewards.append(self.env.get_original_reward())  # float64, as VecNormalize divides them
+        self.scales.append(np.full(self.env.num_envs, reward_scale(self.env)))
 
     def stacked(self) -> tuple[np.ndarray | dict, np.ndarray | dict, np.ndarray, np.ndarray]:
         """``(observations (n_steps, n_envs, ...), last observations, rewards (n_steps, n_envs), scales)``."""
@@ -79,4 +106,4 @@ class RolloutRecorder:
         else:
             observations = np.stack(self.observations)
             steps, last = observations[:-1], observations[-1]
-        return steps, last, np.stack(self.rewards).astype(np.float32), np.stack(self.scales)
+        return steps, last, np.stack(self.rewards), np.stack(self.scales)

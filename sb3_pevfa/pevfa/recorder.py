@@ -77,10 +77,13 @@ class PolicyRecorder:
             observations, last_obs, raw_rewards, scales = raw.stacked()
             extra["reward_scales"] = scales
             if self.history.transitions:
+                # the rewards as VecNormalize gave them (float64 division, clip, float32): what SB3 added beyond them
+                # is the time-limit bootstrap gamma * V(terminal observation), 0 elsewhere
                 normalized_then = raw_rewards / scales
                 if raw.env.norm_reward:
                     normalized_then = np.clip(normalized_then, -raw.env.clip_reward, raw.env.clip_reward)
-                extra.update(raw_rewards=raw_rewards, raw_bootstraps=(buffer.rewards - normalized_then) * scales)
+                bootstraps = (buffer.rewards - normalized_then.astype(np.float32)) * scales
+                extra.update(raw_rewards=raw_rewards, raw_bootstraps=bootstraps)
         if self.history.transitions:
             extra.update(
                 rewards=buffer.rewards,
