@@ -7,6 +7,7 @@ import torch as th
 from conftest import AS_SB3, FAST, DictPendulum, actor_parameters, module_parameters, read_progress, sb3_twin_runs
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv
 from stable_baselines3.common.policies import ActorCriticPolicy
@@ -851,3 +852,21 @@ def test_a_model_loads_with_the_papers_schedule(tmp_path):
     loaded = PPOPeVFA.load(tmp_path / "model", **PAPER_SCHEDULE)  # e.g. a model saved before the cheaper schedule
     assert {name: getattr(loaded, name) for name in PAPER_SCHEDULE} == PAPER_SCHEDULE
     assert loaded.policy.behaviour_chi_gradient
+
+
+def test_checkpoints_save_and_load_the_history_of_their_moment(tmp_path):
+    """A CheckpointCallback (rl-zoo3's --save-freq builds one without save_replay_buffer) saves the history with
+    each checkpoint; the checkpoint loads with it, and rl-zoo3's ``-i`` call with the run's final history
+    (``replay_buffer.pkl``) gets the checkpoint's own."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    model.learn(256, callback=[CheckpointCallback(save_freq=128, save_path=str(tmp_path), name_prefix="rl_model")])
+    model.save_replay_buffer(tmp_path / "replay_buffer.pkl")  # the final one, as --save-replay-buffer writes it
+    assert (tmp_path / "rl_model_replay_buffer_128_steps.pkl").exists()
+    checkpoint = PPOPeVFA.load(tmp_path / "rl_model_128_steps.zip")
+    at_128 = [i for i in model.history.policy_ids if model.history.record_info(i)["num_timesteps"] < 128]  # before it
+    assert checkpoint.num_timesteps == 128 and checkpoint.history.policy_ids == at_128
+    checkpoint.load_replay_buffer(tmp_path / "replay_buffer.pkl")  # what rl-zoo3's -i does
+    assert checkpoint.history.policy_ids == at_128
+    with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128"):
+        checkpoint.load_history(tmp_path / "replay_buffer.pkl")
+    assert checkpoint.history.policy_ids == model.history.policy_ids

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tempfile
 
+import numpy as np
 import optuna
 import pytest
 import yaml
@@ -77,9 +78,9 @@ def zoo_run(tmp_path_factory):
     """One rl-zoo3 training of ppo_pevfa on CartPole-v1, saving the history as rl-zoo3's replay buffer."""
     folder = tmp_path_factory.mktemp("zoo")
     # a constant learning rate (the zoo's CartPole entry decays it to 0 at the last update): every update is a new policy
-    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "512", "-f", str(folder),
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "768", "-f", str(folder),
                "--seed", "0", "--save-replay-buffer", "--eval-freq", "-1", "--hyperparams", "learning_rate:0.001",
-               cwd=folder)  # fmt: skip
+               "--save-freq", "512", cwd=folder)  # fmt: skip
     assert "Loading hyperparameters from: " + str(HYPERPARAMS_PATH) in log
     return folder
 
@@ -263,3 +264,25 @@ def test_sampler_and_converter_agree(space, algo):
             study.tell(trial, 0.0)
     finally:
         SEARCH_SPACE["name"] = "full"
+
+
+def test_zoo_checkpoints_keep_the_history_of_their_moment(zoo_run):
+    """--save-freq saves the history with each checkpoint, and -i <checkpoint> continues with that history, not the
+    run's final replay_buffer.pkl beside it."""
+    run = zoo_run / "ppo_pevfa" / "CartPole-v1_1"
+    assert (run / "rl_model_512_steps.zip").exists() and (run / "rl_model_replay_buffer_512_steps.pkl").exists()
+    saved = PPOPeVFA.load(run / "rl_model_512_steps.zip").history
+    final = PPOPeVFA.load(run / "CartPole-v1.zip")
+    final.load_history(run / "replay_buffer.pkl")
+    # CartPole-v1's entry: 8 envs x 32 steps; the checkpoint came in the second rollout's last step
+    assert saved.n_samples == 256 and final.history.n_samples == 768
+    before = set((zoo_run / "ppo_pevfa").iterdir())
+    log = _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1", "-n", "256", "-f", str(zoo_run),
+               "-i", str(run / "rl_model_512_steps.zip"), "--save-replay-buffer", "--eval-freq", "-1", "--hyperparams",
+               "learning_rate:0.001", cwd=zoo_run)  # fmt: skip
+    assert "Loading the history saved with the checkpoint at 512 steps" in log
+    (continued,) = set((zoo_run / "ppo_pevfa").iterdir()) - before
+    model = PPOPeVFA.load(continued / "CartPole-v1.zip")
+    model.load_history(continued / "replay_buffer.pkl")
+    assert model.history.n_samples == 256 + 256
+    np.testing.assert_array_equal(model.history.samples()[0][:256], saved.samples()[0])

@@ -36,6 +36,7 @@ from torch.nn import functional as F
 from sb3_pevfa.pevfa import fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
+from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize, warn_once
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
@@ -431,6 +432,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             # Loaded with env=None from a model that was built from an env id: rebuild that env (seeded).
             self.set_env(make_vec_env(self.env_id, n_envs=self.n_envs, seed=self.seed))
         kwargs = {} if log_interval is None else {"log_interval": log_interval}  # None: the base's (PPO 1, A2C 100)
+        enable_history_checkpoints(callback)
         super().learn(
             total_timesteps=total_timesteps,
             callback=callback,
@@ -449,18 +451,42 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.history.save(path)
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
-        """Load a history saved by :meth:`save_history`; it must match this model (representation, spaces, actor)."""
+        """Load a history saved by :meth:`save_history`; it must match this model (representation, spaces, actor).
+        A history with records from after this model's ``num_timesteps`` (e.g. a run's final history beside one of
+        its checkpoints) is loaded with a warning."""
         self.history.load(path)
+        latest = max((self.history.record_info(i).get("num_timesteps", 0) for i in self.history.policy_ids), default=0)
+        if latest > self.num_timesteps:
+            warnings.warn(
+                f"The history {path} holds policies recorded up to {latest} steps, this model is at "
+                f"{self.num_timesteps}: it is not the history of this model's moment (for a checkpoint, load the "
+                "history saved with it: <prefix>_replay_buffer_<steps>_steps.pkl)",
+                stacklevel=2,
+            )
+
+    @property
+    def replay_buffer(self) -> PolicyHistory:
+        """The history, under the name SB3's ``CheckpointCallback(save_replay_buffer=True)`` saves with each
+        checkpoint (through :meth:`save_replay_buffer`)."""
+        return self.history
 
     def save_replay_buffer(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Alias of :meth:`save_history`, the name rl-zoo3's ``--save-replay-buffer`` calls."""
         self.save_history(path)
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.IOBase, truncate_last_traj: bool = True) -> None:
-        """Alias of :meth:`load_history`, the name rl-zoo3's ``-i`` (continue training) calls.
+        """Alias of :meth:`load_history`, the name rl-zoo3's ``-i`` (continue training) calls. rl-zoo3 passes the
+        run's final ``replay_buffer.pkl`` also for a checkpoint: a history saved beside it at this model's
+        ``num_timesteps`` (the checkpoint's own) is loaded instead.
 
         :param truncate_last_traj: Ignored (a HER replay buffer option of SB3)
         """
+        if isinstance(path, (str, pathlib.Path)):
+            moment = history_of_the_moment(pathlib.Path(path).parent, self.num_timesteps)
+            if moment is not None and moment != pathlib.Path(path):
+                if self.verbose:
+                    print(f"Loading the history saved with the checkpoint at {self.num_timesteps} steps: {moment}")
+                path = moment
         self.load_history(path)
 
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
@@ -476,12 +502,19 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any
     ):
         """SB3's ``load``. The global torch / numpy RNGs are left as SB3 leaves them (it seeds them with the model's
-        seed, if any, while it rebuilds the model).
+        seed, if any, while it rebuilds the model). A checkpoint of SB3's ``CheckpointCallback``
+        (``<prefix>_<steps>_steps.zip``) comes with the history saved beside it, if there is one.
 
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have
         """
         model = super().load(path, *args, **kwargs)
+        history = checkpoint_history(path) if isinstance(path, (str, pathlib.Path)) else None
+        if history is not None:  # a checkpoint of CheckpointCallback: its history was saved beside it
+            try:
+                model.load_history(history)
+            except ValueError as error:  # e.g. loaded without its VecNormalize env (rl-zoo3's enjoy): the model is fine
+                warnings.warn(f"The checkpoint's history {history} was not loaded: {error}", stacklevel=2)
         rng_states = model.__dict__.pop("_rng_states", None)
         if restore_rng_state:
             if rng_states is None:

@@ -1,0 +1,50 @@
+"""Checkpoints with their history: SB3's ``CheckpointCallback`` names, rl-zoo3's ``--save-freq`` and ``-i``.
+
+A checkpoint ``<prefix>_<steps>_steps.zip`` of a PeVFA model is written with its history beside it, under the name
+SB3's ``CheckpointCallback`` gives a replay buffer (``<prefix>_replay_buffer_<steps>_steps.pkl``), and loading the
+checkpoint finds that history again: :func:`enable_history_checkpoints`, :func:`checkpoint_history`.
+"""
+
+import pathlib
+import re
+
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
+from stable_baselines3.common.type_aliases import MaybeCallback
+
+_CHECKPOINT = re.compile(r"(?P<prefix>.+)_(?P<steps>\d+)_steps(\.zip)?")
+
+
+def _callbacks(callback: MaybeCallback) -> list[BaseCallback]:
+    """Every callback in ``callback`` (a list, a ``CallbackList`` or one), nested ones included."""
+    if callback is None:
+        return []
+    if isinstance(callback, list):
+        return [c for item in callback for c in _callbacks(item)]
+    if isinstance(callback, CallbackList):
+        return [callback, *_callbacks(callback.callbacks)]
+    nested = getattr(callback, "callback", None)  # EventCallback's child
+    return [callback, *(_callbacks(nested) if isinstance(nested, BaseCallback) else [])]
+
+
+def enable_history_checkpoints(callback: MaybeCallback) -> None:
+    """Make every ``CheckpointCallback`` in ``callback`` save the history with each checkpoint (its
+    ``save_replay_buffer``; rl-zoo3's ``--save-freq`` creates one without it)."""
+    for item in _callbacks(callback):
+        if isinstance(item, CheckpointCallback):
+            item.save_replay_buffer = True
+
+
+def checkpoint_history(model_path: str | pathlib.Path) -> pathlib.Path | None:
+    """The history saved with the checkpoint ``model_path`` (``..._<steps>_steps[.zip]``), if it exists."""
+    path = pathlib.Path(model_path)
+    match = _CHECKPOINT.fullmatch(path.name)
+    if match is None:
+        return None
+    history = path.with_name(f"{match['prefix']}_replay_buffer_{match['steps']}_steps.pkl")
+    return history if history.exists() else None
+
+
+def history_of_the_moment(directory: pathlib.Path, num_timesteps: int) -> pathlib.Path | None:
+    """A checkpoint history in ``directory`` saved at ``num_timesteps`` (the moment of a model loaded from it)."""
+    matches = sorted(directory.glob(f"*_replay_buffer_{num_timesteps}_steps.pkl"))
+    return matches[0] if matches else None
