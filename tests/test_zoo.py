@@ -286,3 +286,18 @@ def test_zoo_checkpoints_keep_the_history_of_their_moment(zoo_run):
     model.load_history(continued / "replay_buffer.pkl")
     assert model.history.n_samples == 256 + 256
     np.testing.assert_array_equal(model.history.samples()[0][:256], saved.samples()[0])
+
+
+def test_help_shows_our_flag_and_the_python_way_of_the_docs_works(tmp_path):
+    assert "--search-space {full,small}" in _run("-m", "sb3_pevfa.train", "--help", cwd=tmp_path)
+    # docs/zoo.md: register, then rl-zoo3's own train() with the shipped hyperparameters as --conf-file
+    code = (
+        "import sys, sb3_pevfa.rl_zoo as zoo\n"
+        "zoo.register()\n"
+        "sys.argv = ['train', '--algo', 'ppo_pevfa', '--env', 'CartPole-v1', '--conf-file', str(zoo.HYPERPARAMS_PATH),"
+        " '-n', '256', '-f', 'logs', '--eval-freq', '-1']\n"
+        "from rl_zoo3.train import train\n"
+        "train()\n"
+    )
+    _run("-c", code, cwd=tmp_path)
+    assert (tmp_path / "logs" / "ppo_pevfa" / "CartPole-v1_1" / "CartPole-v1.zip").exists()

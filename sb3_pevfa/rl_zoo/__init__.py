@@ -50,6 +50,12 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
         index = args.index("--search-space")
         del args[index : index + 2]
     SEARCH_SPACE["name"] = ours.search_space
+    if {"-h", "--help"} & set(args):  # rl-zoo3's help follows and exits; our flag first
+        print(
+            "sb3-pevfa adds to rl-zoo3's flags:\n  --search-space {full,small}\n"
+            "                        PeVFA search space of -optimize: 'full' (default) or 'small' (a tiny one for tests)\n"
+            f"  (--algo ppo_pevfa / a2c_pevfa read {HYPERPARAMS_PATHS[ALGO_NAME].parent} unless --conf-file is given)\n"
+        )
     if default_config and ours.algo in HYPERPARAMS_PATHS and not {"--conf-file", "-conf"} & set(args):
         args += ["--conf-file", str(HYPERPARAMS_PATHS[ours.algo])]
     sys.argv = [sys.argv[0], *args]
