@@ -63,9 +63,12 @@ def test_shipped_hyperparameters(algo):
     assert expected <= set(config)
     base = algo.removesuffix("_pevfa")
     zoo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / f"{base}.yml").read_text())
+    if algo == "ppo_pevfa":  # every entry of rl-zoo3's ppo.yml but those of PyBullet and MiniGrid (not dependencies)
+        names = {k.replace("-v2", "-v5") for k in zoo if "Bullet" not in k and not k.startswith("MiniGrid-")}
+        assert names <= set(config), sorted(names - set(config))
     for env_id, params in config.items():
         assert params["representation"] == "opr"
-        source = zoo.get(env_id, zoo.get(env_id.replace("-v5", "-v4")))
+        source = next((zoo[k] for k in (env_id, env_id.replace("-v5", "-v4"), env_id.replace("-v5", "-v2")) if k in zoo), None)
         if source is not None:  # the PPO / A2C part is rl-zoo3's, unchanged
             assert {k: v for k, v in params.items() if k not in ("representation", "embedding_dim")} == {
                 **source,
@@ -301,3 +304,31 @@ def test_help_shows_our_flag_and_the_python_way_of_the_docs_works(tmp_path):
     )
     _run("-c", code, cwd=tmp_path)
     assert (tmp_path / "logs" / "ppo_pevfa" / "CartPole-v1_1" / "CartPole-v1.zip").exists()
+
+
+ENTRIES = sorted(yaml.safe_load(HYPERPARAMS_PATH.read_text()))
+
+
+@pytest.mark.parametrize("entry", ENTRIES)
+def test_every_shipped_entry_builds_a_model(entry, tmp_path):
+    """rl-zoo3's experiment manager builds (does not train) PPOPeVFA from each entry whose env is installed here:
+    its PPO settings as written, its PeVFA ones; ``default`` through an env without an entry (CartPole-v0)."""
+    import argparse
+
+    import gymnasium as gym
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    env_id = {"default": "CartPole-v0", "atari": "PongNoFrameskip-v4"}.get(entry, entry)
+    try:
+        gym.make(env_id).close()
+    except (gym.error.DependencyNotInstalled, gym.error.NameNotFound, gym.error.NamespaceNotFound, ImportError) as error:
+        pytest.skip(f"{env_id} cannot be made here: {error}")
+    register()
+    manager = ExperimentManager(argparse.Namespace(), ALGO_NAME, env_id, str(tmp_path), n_timesteps=1000, eval_freq=-1,
+                                config=str(HYPERPARAMS_PATH), verbose=0)  # fmt: skip
+    model, _ = manager.setup_experiment()
+    params = yaml.safe_load(HYPERPARAMS_PATH.read_text())[entry]
+    assert isinstance(model, PPOPeVFA) and model.representation == params["representation"]
+    assert model.n_steps == params.get("n_steps", 2048) and model.n_envs == params.get("n_envs", 1)
+    assert model.batch_size == params.get("batch_size", 64) and model.gamma == params.get("gamma", 0.99)
+    model.env.close()
