@@ -2,12 +2,12 @@
 # rl-zoo3 with PPOPeVFA: train PPO and PPOPeVFA on one config, watch, plot their evaluations, run a small search.
 #
 #   bash examples/zoo_commands.sh                   # CartPole-v1, 100k steps, 20 trials
-#   TINY=1 bash examples/zoo_commands.sh            # seconds (CI)
+#   TINY=1 bash examples/zoo_commands.sh            # a tiny budget (CI): about a minute of CPU, most of it Python start-ups
 #   ENV=Hopper-v5 LOGS=runs/zoo_hopper bash examples/zoo_commands.sh
 set -euo pipefail
 ENV=${ENV:-CartPole-v1}
 LOGS=${LOGS:-runs/zoo}
-if [ "${TINY:-0}" = 1 ]; then N=2048; TRIALS=2; EVAL=1024; else N=100000; TRIALS=20; EVAL=10000; fi
+if [ "${TINY:-0}" = 1 ]; then N=512; TRIALS=2; EVAL=256; else N=100000; TRIALS=20; EVAL=10000; fi
 export MPLBACKEND=Agg
 
 # 1. PPO and PPOPeVFA, same seed, rl-zoo3's EvalCallback every $EVAL steps (hyperparams/ppo_pevfa.yml holds the
@@ -20,9 +20,10 @@ done
 # 2. watch the trained PPOPeVFA agent (headless here; drop --no-render to see it)
 python -m sb3_pevfa.enjoy --algo ppo_pevfa --env "$ENV" -f "$LOGS" -n 500 --no-render
 
-# 3. rl-zoo3's plots and table of the evaluations (PPO vs PPOPeVFA)
-python -m rl_zoo3.plots.all_plots -a ppo ppo_pevfa -e "$ENV" -f "$LOGS" -o "$LOGS/results" --no-display
-python -m rl_zoo3.plots.plot_train -a ppo_pevfa -e "$ENV" -f "$LOGS/"
+# 3. rl-zoo3's plots and table of the evaluations (PPO vs PPOPeVFA), saved as PNGs (rl-zoo3 only opens windows)
+python -m sb3_pevfa.rl_zoo.save_plots "$LOGS/plots/evaluations" rl_zoo3.plots.all_plots -a ppo ppo_pevfa -e "$ENV" \
+    -f "$LOGS" -o "$LOGS/results" --no-display
+python -m sb3_pevfa.rl_zoo.save_plots "$LOGS/plots/training" rl_zoo3.plots.plot_train -a ppo_pevfa -e "$ENV" -f "$LOGS/"
 
 # 4. a hyperparameter search with rl-zoo3's Optuna integration (PPO's space plus PeVFA's), journal storage; the
 #    report (best parameters, all trials) is written under $LOGS/ppo_pevfa/

@@ -19,7 +19,7 @@ OUTPUTS = {
     "quickstart.py": "history.npz",
     "train_pevfa.py": "model.zip",
     "custom_representation.py": "*/progress.csv",
-    "zoo_commands.sh": "ppo_pevfa/CartPole-v1_1/evaluations.npz",
+    "zoo_commands.sh": "plots/*.png",
 }
 
 
