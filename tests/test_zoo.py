@@ -332,3 +332,22 @@ def test_every_shipped_entry_builds_a_model(entry, tmp_path):
     assert model.n_steps == params.get("n_steps", 2048) and model.n_envs == params.get("n_envs", 1)
     assert model.batch_size == params.get("batch_size", 64) and model.gamma == params.get("gamma", 0.99)
     model.env.close()
+
+
+def test_headless_enjoy_and_video_of_a_mujoco_task(tmp_path):
+    """docs/zoo.md's headless way: enjoy with --no-render; record_video of a MuJoCo task with MUJOCO_GL=egl."""
+    probe = "import gymnasium as gym; e = gym.make('InvertedPendulum-v5', render_mode='rgb_array'); e.reset(); e.render()"
+    egl = {**ENV, "MUJOCO_GL": "egl"}
+    if subprocess.run([sys.executable, "-c", probe], env=egl, capture_output=True, timeout=120).returncode != 0:
+        pytest.skip("MuJoCo cannot render with EGL here (Debian: apt-get install libegl1 libegl-mesa0)")
+    _run("-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "InvertedPendulum-v5", "-n", "64", "-f", str(tmp_path),
+         "--eval-freq", "-1", cwd=tmp_path)  # fmt: skip
+    log = _run("-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "InvertedPendulum-v5", "-f", str(tmp_path),
+               "-n", "50", "--no-render", cwd=tmp_path)  # fmt: skip
+    assert "Episode" in log or "Mean reward" in log or "Atari" in log or "episode" in log.lower()
+    out = tmp_path / "videos"
+    result = subprocess.run([sys.executable, "-m", "sb3_pevfa.record_video", "--algo", "ppo_pevfa", "--env",
+                             "InvertedPendulum-v5", "-f", str(tmp_path), "-n", "20", "-o", str(out)], cwd=tmp_path,
+                            env=egl, capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert list(out.glob("*.mp4"))
