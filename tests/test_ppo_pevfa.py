@@ -516,9 +516,9 @@ def test_sampled_history_batches_are_the_samples_of_their_policies(batch_policie
     sampler = "sample" if batch_policies is None else "sample_grouped"
     sample = getattr(model.history, sampler)
 
-    def spy_rollout(buffer, policy_id, *args):
+    def spy_rollout(buffer, policy_id, *args, **kwargs):
         rollouts[policy_id] = (buffer.observations.reshape(-1, 3).copy(), buffer.returns.reshape(-1).copy())
-        add_rollout(buffer, policy_id, *args)
+        add_rollout(buffer, policy_id, *args, **kwargs)
 
     def spy_sample(n, *args, **kwargs):
         batch = sample(n, *args, **kwargs)
