@@ -21,16 +21,10 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_pevfa.pevfa.records import batch_size, rows
+from sb3_pevfa.pevfa.records import batch_size, rows, stack_observations
 
 #: Observations per batched critic pass (bounds the memory of image rollouts)
 VALUE_CHUNK = 4096
-
-
-def _stack(observations: list) -> np.ndarray | dict[str, np.ndarray]:
-    if isinstance(observations[0], dict):
-        return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
-    return np.stack(observations)
 
 
 def flat_observations(buffer: RolloutBuffer | DictRolloutBuffer, device: th.device, env_major: bool) -> PyTorchObs:
@@ -143,7 +137,9 @@ def collect_rollouts(
     log_probs = log_probabilities(policy, observations, rollout_buffer.actions.reshape(-1, rollout_buffer.action_dim))
     rollout_buffer.log_probs[:] = log_probs.cpu().numpy().reshape(rollout_buffer.log_probs.shape)
     if truncated:  # bootstrap the truncated episodes with the value of their last observation (SB3 #633)
-        terminal_values = predict_values(policy, obs_as_tensor(_stack([obs for *_, obs in truncated]), model.device))
+        terminal_values = predict_values(
+            policy, obs_as_tensor(stack_observations([obs for *_, obs in truncated]), model.device)
+        )
         for (pos, idx, _), value in zip(truncated, terminal_values.cpu().numpy()):
             rollout_buffer.rewards[pos, idx] += model.gamma * value
     with th.no_grad():

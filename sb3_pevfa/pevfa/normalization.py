@@ -21,6 +21,8 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
 
+from sb3_pevfa.pevfa.records import stack_observations
+
 _warned: set[str] = set()
 
 
@@ -99,11 +101,5 @@ class RolloutRecorder:
 
     def stacked(self) -> tuple[np.ndarray | dict, np.ndarray | dict, np.ndarray, np.ndarray]:
         """``(observations (n_steps, n_envs, ...), last observations, rewards (n_steps, n_envs), scales)``."""
-        first = self.observations[0]
-        if isinstance(first, dict):
-            observations = {k: np.stack([obs[k] for obs in self.observations]) for k in first}
-            steps, last = {k: v[:-1] for k, v in observations.items()}, {k: v[-1] for k, v in observations.items()}
-        else:
-            observations = np.stack(self.observations)
-            steps, last = observations[:-1], observations[-1]
-        return steps, last, np.stack(self.rewards), np.stack(self.scales)
+        steps = stack_observations(self.observations[:-1])
+        return steps, self.observations[-1], np.stack(self.rewards), np.stack(self.scales)

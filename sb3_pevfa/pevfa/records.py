@@ -110,6 +110,13 @@ def rows(obs: np.ndarray | th.Tensor | dict, index: int | slice | np.ndarray | t
     return {key: value[index] for key, value in obs.items()} if isinstance(obs, dict) else obs[index]
 
 
+def stack_observations(observations: list) -> np.ndarray | dict[str, np.ndarray]:
+    """A list of observation batches (arrays, or dicts of them) stacked along a new first axis."""
+    if isinstance(observations[0], dict):
+        return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
+    return np.stack(observations)
+
+
 def state_dim(observation_space: spaces.Space) -> int:
     """Size of a flattened, preprocessed observation (one-hot for discrete spaces)."""
     return int(spaces.utils.flatdim(observation_space))
