@@ -1,6 +1,7 @@
 """Optuna samplers and trial converters of ``ppo_pevfa`` and ``a2c_pevfa`` for rl-zoo3: the base algorithm's
 parameters (rl-zoo3's own space) plus PeVFA's."""
 
+import math
 from typing import Any
 
 import optuna
@@ -71,18 +72,19 @@ def _sample_small_ppo_params(trial: optuna.Trial) -> dict[str, Any]:
     return convert_onpolicy_params(sampled)
 
 
-def _sample_pevfa_params(trial: optuna.Trial, small: bool) -> dict[str, Any]:
-    """Representation, objectives, embedding size, history size and update frequency, and critic learning rate."""
+def _sample_pevfa_params(trial: optuna.Trial, small: bool, rollout_size: int) -> dict[str, Any]:
+    """Representation, objectives, embedding size, history size and update frequency, and critic learning rate.
+
+    :param rollout_size: ``n_steps * n_envs`` of the trial: the history is sampled larger (PeVFA refuses a history
+        that holds no more than one rollout)"""
     representation = trial.suggest_categorical("representation", ["opr", "spr"] if small else ["opr", "spr", "none"])
     sampled: dict[str, Any] = {"representation": representation}
     if representation != "none":
         sampled["objectives"] = trial.suggest_categorical("objectives", ["e2e", "cl", "aux", "cl+aux"])
         sampled["embedding_dim"] = trial.suggest_categorical("embedding_dim", [8, 16] if small else [16, 32, 64, 128])
-    sampled["history_buffer_size_pow"] = (
-        trial.suggest_int("history_buffer_size_pow", 10, 12)
-        if small
-        else (trial.suggest_int("history_buffer_size_pow", 14, 19))
-    )
+    low, high = (10, 12) if small else (14, 19)
+    low = min(max(low, math.floor(math.log2(rollout_size)) + 1), high)  # 2**low > one rollout
+    sampled["history_buffer_size_pow"] = trial.suggest_int("history_buffer_size_pow", low, high)
     # 1.6 to 12.8 historical samples per env step with the default 256-sample batches (the paper: 6.4)
     sampled["history_train_freq"] = trial.suggest_categorical("history_train_freq", [20, 40, 80, 160])
     sampled["critic_learning_rate"] = trial.suggest_float("critic_learning_rate", 1e-5, 3e-3, log=True)
@@ -93,14 +95,14 @@ def sample_ppo_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, ad
     """Sampler of ``ppo_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's PPO space plus PeVFA's."""
     small = SEARCH_SPACE["name"] == "small"
     ppo = _sample_small_ppo_params(trial) if small else sample_ppo_params(trial, n_actions, n_envs, additional_args)
-    return _with_fixed_params({**ppo, **_sample_pevfa_params(trial, small)})
+    return _with_fixed_params({**ppo, **_sample_pevfa_params(trial, small, ppo.get("n_steps", 2048) * n_envs)})
 
 
 def sample_a2c_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """Sampler of ``a2c_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's A2C space plus PeVFA's."""
     small = SEARCH_SPACE["name"] == "small"
     a2c = sample_a2c_params(trial, n_actions, n_envs, additional_args)
-    return _with_fixed_params({**a2c, **_sample_pevfa_params(trial, small)})
+    return _with_fixed_params({**a2c, **_sample_pevfa_params(trial, small, a2c.get("n_steps", 5) * n_envs)})
 
 
 #: Sampler and converter of each PeVFA algorithm, by rl-zoo3 name.
