@@ -10,8 +10,8 @@ steps, so they no longer enter the next PPO update's gradient-norm clip. ``opr_j
 again when OPR records stopped storing state-action pairs that nothing reads: drawing them had consumed the
 history's and torch's RNGs. With those draws put back (and discarded), the new code gave the old numbers bit for bit;
 the new numbers were recorded with one torch thread, as the tests run (two threads round differently: up to 1.3e-5).
-The tolerance (1e-5, over 100x what those round-off-sized changes gave) leaves room for other CPUs' kernels only
-(one machine's differ by 3e-6). ``spr_cl_aux`` runs AUX on SPR's own pairs (``separate_pairs=False``), as all
+The tolerance (1e-4) leaves room for other CPUs' kernels only: one machine's differ by 3e-6, another's by 1.2e-5
+(``paper``'s critic sum), and those round-off-sized changes stayed below 1e-7. ``spr_cl_aux`` runs AUX on SPR's own pairs (``separate_pairs=False``), as all
 versions before the paper's separate pairs became the default; breaking the history updates moves every
 configuration far outside it.
 """
@@ -82,4 +82,4 @@ def test_reproduces_the_numbers_recorded_before_the_redesign(name, fast_path):
     got = reference_numbers(name, fast_path)
     assert got["n_policies"] == expected["n_policies"] and got["n_samples"] == expected["n_samples"]
     for key in expected:
-        assert got[key] == pytest.approx(expected[key], rel=1e-5), key
+        assert got[key] == pytest.approx(expected[key], rel=1e-4), key
