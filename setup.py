@@ -39,7 +39,17 @@ setup(
         "mujoco": ["gymnasium[mujoco]>=1.0"],
         # rl-zoo3's enjoy imports `requests`, its plots need `seaborn` and its Optuna report `pandas`, undeclared by it;
         # PostgreSQL storages of Optuna need psycopg (SQLAlchemy 2 default driver).
-        "zoo": ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=3.0", "requests", "seaborn", "pandas", "psycopg[binary]"],
+        # plotly: Optuna's interactive plots of a study (examples/optuna_search.py)
+        "zoo": [
+            "rl_zoo3>=2.4.0",
+            "sb3-contrib>=2.4.0",
+            "optuna>=3.0",
+            "requests",
+            "seaborn",
+            "pandas",
+            "psycopg[binary]",
+            "plotly",
+        ],
         "tests": [
             "pytest",
             "pytest-xdist",
@@ -52,6 +62,7 @@ setup(
             "seaborn",
             "pandas",
             "psycopg[binary]",
+            "plotly",
             # rl-zoo3's record_video of classic-control tasks renders with pygame
             "gymnasium[classic-control]",
             "matplotlib",

@@ -1,88 +1,111 @@
-"""Tune PPOPeVFA with Optuna's own API: TPE sampling, median pruning on periodic evaluations.
+"""Tune PPOPeVFA with rl-zoo3's own Optuna machinery, then draw the study with Optuna's own visualizations.
 
 One process:
 
-    python examples/optuna_search.py --env CartPole-v1 --n-trials 20 --timesteps 50000
+    python examples/optuna_search.py --env Hopper-v5 --n-trials 50 --timesteps 300000 --out runs/optuna
 
-Several workers sharing one study (run the same command in several shells or on several machines):
+Several workers sharing one study (create it once, then run the same command in several shells or machines):
 
-    # one machine: a journal file (or sqlite:///study.db)
-    python examples/optuna_search.py --storage study.log --study-name pevfa-cartpole --n-trials 10
-    # many machines: a PostgreSQL server they all reach
-    python examples/optuna_search.py --storage postgresql://user:password@host/db --study-name pevfa --n-trials 10
+    optuna create-study --storage sqlite:///study.db --study-name pevfa --direction maximize
+    python examples/optuna_search.py --storage sqlite:///study.db --study-name pevfa --n-trials 10   # each worker
+    # a journal file (study.log) serves the processes of one machine; postgresql://user:password@host/db many
 
-The search space is rl-zoo3's PPO space plus PeVFA's (``sb3_pevfa.rl_zoo.hyperparams_opt``); the trials are
-evaluated and pruned by rl-zoo3's ``TrialEvalCallback``.
+The search is rl-zoo3's (``python -m sb3_pevfa.train -optimize``, i.e. its ``ExperimentManager``): each trial starts
+from the env's entry of the shipped ``hyperparams/ppo_pevfa.yml`` (``n_envs``, ``normalize``, ``policy_kwargs``...)
+and overrides only what it samples (rl-zoo3's PPO space plus PeVFA's, ``sb3_pevfa.rl_zoo.hyperparams_opt``);
+rl-zoo3's ``TrialEvalCallback`` evaluates and prunes, its samplers and pruners are chosen by name and its storages
+by URL. The study is then drawn under ``<out>/plots/``: interactive plotly pages (``optuna.visualization``, HTML)
+and the same plots as PNGs (``optuna.visualization.matplotlib``). rl-zoo3's own flags can follow ``--``.
 """
 
 import argparse
-import os
+import pathlib
+import sys
+import warnings
 
+import matplotlib
 import optuna
-import torch as th
-from rl_zoo3.callbacks import TrialEvalCallback
-from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE, sample_ppo_pevfa_params
+from sb3_pevfa import train
 
-
-def make_storage(storage: str | None) -> optuna.storages.BaseStorage | str | None:
-    """A path ending in ``.log`` is a journal file (safe for several local processes); anything else is an
-    RDB URL (``sqlite:///study.db``, ``postgresql://...``)."""
-    if storage is not None and storage.endswith(".log"):
-        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
-    return storage
+#: Optuna's plots of a study, by file name: the search, the pruning curves and the parameters
+PLOTS = ("optimization_history", "intermediate_values", "param_importances", "parallel_coordinate", "slice")
 
 
-def objective(trial: optuna.Trial, args: argparse.Namespace) -> float:
-    env = make_vec_env(args.env, n_envs=1, seed=args.seed + trial.number)
-    eval_env = make_vec_env(args.env, n_envs=1, seed=args.seed + 10_000 + trial.number)
-    n_actions = env.action_space.shape[0] if env.action_space.shape else 1
-    params = sample_ppo_pevfa_params(trial, n_actions, env.num_envs, {})
-    trial.set_user_attr("worker", os.getpid())
-    model = PPOPeVFA("MlpPolicy", env, seed=args.seed, **params)
-    eval_freq = max(args.timesteps // args.n_evaluations, 1)
-    callback = TrialEvalCallback(eval_env, trial, n_eval_episodes=args.eval_episodes, eval_freq=eval_freq)
-    try:
-        model.learn(args.timesteps, callback=callback)
-    except (AssertionError, ValueError) as error:  # e.g. NaN losses: report the trial as pruned
-        raise optuna.TrialPruned(str(error)) from error
-    if callback.is_pruned:
-        raise optuna.TrialPruned()
-    return callback.last_mean_reward
+def storage_of(url: str | None) -> optuna.storages.BaseStorage | str | None:
+    """The storage as rl-zoo3 opens it: a path ending in ``.log`` is a journal file, anything else an RDB URL."""
+    if url is not None and url.endswith(".log"):
+        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(url))
+    return url
 
 
-def main() -> None:
+def search(args: argparse.Namespace, zoo_args: list[str]) -> optuna.Study:
+    """Run ``args.n_trials`` trials of rl-zoo3's search in this process and return the (shared) study."""
+    storage = args.storage or str(args.out / "study.log")  # a study to draw even when none is shared
+    argv = [
+        "--algo", "ppo_pevfa", "--env", args.env, "-f", str(args.out), "-optimize", "--n-trials", str(args.n_trials),
+        "-n", str(args.timesteps), "--n-evaluations", str(args.n_evaluations), "--eval-episodes", str(args.eval_episodes),
+        "--sampler", args.sampler, "--pruner", args.pruner, "--storage", storage, "--study-name", args.study_name,
+        "--search-space", args.search_space, "--num-threads", "1", "--no-optim-plots",
+    ]  # fmt: skip
+    if args.seed is not None:
+        argv += ["--seed", str(args.seed)]
+    train.main(argv + zoo_args)
+    return optuna.load_study(study_name=args.study_name, storage=storage_of(storage))
+
+
+def save_plots(study: optuna.Study, folder: pathlib.Path) -> list[pathlib.Path]:
+    """Each of :data:`PLOTS` as ``<name>.html`` (plotly, sharing one ``plotly.min.js``) and ``<name>.png``.
+
+    A plot that the study cannot give yet (e.g. parameter importances before two trials completed) is skipped with
+    Optuna's reason printed."""
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)  # Optuna's matplotlib module
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in PLOTS:
+        try:
+            figure = getattr(optuna.visualization, f"plot_{name}")(study)
+            with_matplotlib = getattr(optuna.visualization.matplotlib, f"plot_{name}")(study)
+        except (ValueError, RuntimeError) as error:
+            print(f"{name}: not drawn ({error})")
+            continue
+        figure.write_html(folder / f"{name}.html", include_plotlyjs="directory")
+        axes = with_matplotlib.flat[0] if hasattr(with_matplotlib, "flat") else with_matplotlib
+        axes.figure.savefig(folder / f"{name}.png", dpi=100, bbox_inches="tight")
+        plt.close(axes.figure)
+        written += [folder / f"{name}.html", folder / f"{name}.png"]
+    return written
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    zoo_args = argv[argv.index("--") + 1 :] if "--" in argv else []
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="CartPole-v1")
-    parser.add_argument("--n-trials", type=int, default=20)
-    parser.add_argument("--timesteps", type=int, default=50_000)
-    parser.add_argument("--n-evaluations", type=int, default=5)
+    parser.add_argument("--n-trials", type=int, default=20, help="trials run by this worker")
+    parser.add_argument("--timesteps", type=int, default=50_000, help="env steps per trial")
+    parser.add_argument("--n-evaluations", type=int, default=5, help="evaluations (and pruning points) per trial")
     parser.add_argument("--eval-episodes", type=int, default=5)
+    parser.add_argument("--sampler", default="tpe", choices=["random", "tpe", "auto"])
+    parser.add_argument("--pruner", default="median", choices=["halving", "median", "none"])
     parser.add_argument("--storage", default=None, help="journal file (*.log), sqlite:///file.db or postgresql://...")
     parser.add_argument("--study-name", default="ppo_pevfa")
     parser.add_argument("--search-space", choices=["full", "small"], default="full")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--tiny", action="store_true", help="2 trials of 1k steps, the small space (a smoke test)")
-    args = parser.parse_args()
-    th.set_num_threads(1)
+    parser.add_argument("--seed", type=int, default=None, help="seeds the sampler and the trials (default: random)")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/optuna"), help="zoo logs and plots")
+    parser.add_argument("--tiny", action="store_true", help="2 trials of 1024 steps in the small space (a smoke test)")
+    args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     if args.tiny:
         args.n_trials, args.timesteps, args.n_evaluations, args.eval_episodes, args.search_space = 2, 1024, 2, 2, "small"
-    SEARCH_SPACE["name"] = args.search_space
-
-    study = optuna.create_study(
-        storage=make_storage(args.storage),
-        study_name=args.study_name,
-        direction="maximize",
-        load_if_exists=True,
-        sampler=optuna.samplers.TPESampler(n_startup_trials=5),
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=args.n_evaluations // 3),
-    )
-    study.optimize(lambda trial: objective(trial, args), n_trials=args.n_trials)
-    completed = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
+    study = search(args, zoo_args)
+    completed = study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
     if completed:
         print(f"best of {len(study.trials)} trials: {study.best_value:.1f} with {study.best_params}")
+    written = save_plots(study, args.out / "plots")
+    print(f"{len(written)} plots under {args.out / 'plots'}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
 """rl-zoo3 and Optuna, through the real rl-zoo3 code paths and real storages, at tiny budgets."""
 
+import importlib.util
 import os
 import pathlib
+import re
 import shutil
 import socket
 import subprocess
@@ -170,16 +172,41 @@ def _two_workers(storage: str, cwd: pathlib.Path, study_name: str = "shared") ->
         else storage
     )
     optuna.create_study(storage=loaded_storage, study_name=study_name, direction="maximize")
-    workers = [subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)]
-    workers.append(subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    workers = [
+        subprocess.Popen([*command, "--out", str(cwd / f"worker{i}")], cwd=cwd, env=ENV, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True)
+        for i in range(2)
+    ]  # fmt: skip
+    ran = []  # the trial numbers each worker reports (Optuna's log: "Trial <n> finished" / "pruned")
     for worker in workers:
         output, _ = worker.communicate(timeout=600)
         assert worker.returncode == 0, output[-3000:]
+        ran.append({int(n) for n in re.findall(r"Trial (\d+) (?:finished|pruned)", output)})
     study = optuna.load_study(storage=loaded_storage, study_name=study_name)
     assert len(study.trials) == 4
-    assert len({trial.user_attrs["worker"] for trial in study.trials}) == 2
+    assert len(ran[0]) == len(ran[1]) == 2 and ran[0] | ran[1] == {0, 1, 2, 3}  # two workers, one study
     assert all(t.state in (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED) for t in study.trials)
     return study
+
+
+def test_optuna_example_keeps_the_entrys_envs_and_normalization(tmp_path, monkeypatch):
+    """The example's trials run through rl-zoo3's ExperimentManager: Acrobot-v1's entry (16 envs, VecNormalize) is
+    kept, where the former hand-written objective built one unnormalized env."""
+    spec = importlib.util.spec_from_file_location("optuna_search", ROOT / "examples" / "optuna_search.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    seen, learn = [], PPOPeVFA.learn
+
+    def spy(self, *args, **kwargs):
+        seen.append((self.n_envs, type(self.get_vec_normalize_env()).__name__, self.representation))
+        return learn(self, *args, **kwargs)
+
+    monkeypatch.setattr(PPOPeVFA, "learn", spy)
+    monkeypatch.setattr(sys, "argv", [sys.argv[0]])
+    monkeypatch.chdir(tmp_path)
+    example.main(["--env", "Acrobot-v1", "--tiny", "--seed", "0", "--out", str(tmp_path)])
+    study = optuna.load_study(study_name="ppo_pevfa", storage=example.storage_of(str(tmp_path / "study.log")))
+    assert seen == [(16, "VecNormalize", trial.params["representation"]) for trial in study.trials]
 
 
 @pytest.mark.parametrize("kind", ["journal", "sqlite"])
