@@ -96,7 +96,8 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
 
     baseline = {"a": np.array([10.0, 30.0]), "b": np.array([1.0, 1.0, 4.0])}  # means 20 and 2
     scores = aggregate.normalized({"a": np.array([20.0, 40.0, 60.0]), "b": np.array([2.0, 8.0])}, baseline)
-    np.testing.assert_allclose(scores["a"], [1, 2, 3]) and np.testing.assert_allclose(scores["b"], [1, 4])
+    np.testing.assert_allclose(scores["a"], [1, 2, 3])
+    np.testing.assert_allclose(scores["b"], [1, 4])
     # pooled runs 1, 1, 2, 3, 4: the middle half (trimmed 25 % at each end: 1 run each) is 1, 2, 3
     assert aggregate.iqm(scores) == pytest.approx(2.0)
     assert aggregate.mean(scores) == pytest.approx((2.0 + 2.5) / 2)
