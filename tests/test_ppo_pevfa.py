@@ -91,23 +91,53 @@ def test_vectorized_and_normalized_envs(representation):
 
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_dict_observations_under_vec_normalize_with_some_keys(representation, monkeypatch):
-    """``norm_obs_keys``: the normalised key reads in today's statistics, the other stays raw; SPR's Dict probe
-    states cannot be re-expressed and keep their record's normalisation (docs/history.md)."""
+    """``norm_obs_keys``: the normalised key reads in today's statistics, the other stays raw; so do SPR's flattened
+    Dict probe states (``angle`` then ``speed``), with nothing announced as stale."""
     env = VecNormalize(make_vec_env(DictPendulum, n_envs=2, seed=0), norm_obs_keys=["speed"])
     monkeypatch.setattr(normalization, "_warned", set())  # announced once per process: as if this were the first
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = PPOPeVFA("MultiInputPolicy", env, representation=representation, **FAST).learn(192)
-    stale = [w for w in caught if "keep the normalisation of their record" in str(w.message)]
-    assert len(stale) == (representation == "spr")
-    raw, _, _ = model.history.samples(raw=True)
+    assert not [w for w in caught if "normalisation of their record" in str(w.message)]
+    history = model.history
+    raw, _, _ = history.samples(raw=True)
     np.testing.assert_allclose(np.hypot(raw["angle"][:, 0], raw["angle"][:, 1]), 1.0, rtol=1e-5)
     assert np.abs(raw["speed"]).max() <= 8.0
     env.obs_rms["speed"].mean += 1.0
-    obs, _, _ = model.history.samples()
+    env.obs_rms["speed"].var *= 3.0
+    obs, _, _ = history.samples()
     np.testing.assert_array_equal(obs["angle"], raw["angle"])
     np.testing.assert_array_equal(obs["speed"], env.normalize_obs(raw)["speed"])
-    assert not model.history.raw_states
+    assert history.raw_states
+    if representation == "spr":  # raw probe states: a raw angle on the unit circle, a raw speed within +-8
+        raw_states = history.records(history.policy_ids, raw=True)["states"]
+        np.testing.assert_allclose(np.hypot(raw_states[..., 0], raw_states[..., 1]), 1.0, rtol=1e-5)
+        assert np.abs(raw_states[..., 2]).max() <= 8.0 and np.abs(raw_states[..., 2]).max() > 1.0
+        states = history.records(history.policy_ids)["states"]
+        speed = env.normalize_obs({"angle": raw_states[..., :2], "speed": raw_states[..., 2:]})["speed"]
+        np.testing.assert_array_equal(states[..., :2], raw_states[..., :2])
+        np.testing.assert_allclose(states[..., 2:], speed, rtol=1e-6)
+        chi = model.policy.embed(PolicyRecord.from_numpy(history.records(history.policy_ids)))
+        env.obs_rms["speed"].mean -= 1.0  # the encoder reads the states of today's statistics
+        assert not th.allclose(chi, model.policy.embed(PolicyRecord.from_numpy(history.records(history.policy_ids))))
+
+
+def test_dict_probe_states_with_a_normalised_image_key():
+    """VecNormalize turns every key it normalises into a float Box (no longer an image): that key's part of the
+    flattened probe state is raw too, and reads in today's statistics; the unnormalised key stays as recorded."""
+    from stable_baselines3.common.envs import SimpleMultiObsEnv
+
+    np.random.seed(0)  # SimpleMultiObsEnv draws its observations from the global RNG when it is built
+    env = VecNormalize(make_vec_env(lambda: SimpleMultiObsEnv(random_start=False), n_envs=1), norm_obs_keys=["img"])
+    model = PPOPeVFA("MultiInputPolicy", env, representation="spr", n_state_action_pairs=8, **FAST).learn(128)
+    history, pixels = model.history, int(np.prod(env.observation_space["img"].shape))
+    env.obs_rms["img"].mean += 0.25
+    raw = history.records(history.policy_ids, raw=True)["states"]
+    states = history.records(history.policy_ids)["states"]
+    image = env.normalize_obs({"img": raw[..., :pixels].reshape(-1, *env.observation_space["img"].shape)})["img"]
+    np.testing.assert_allclose(states[..., :pixels], image.reshape(raw[..., :pixels].shape), rtol=1e-6)
+    np.testing.assert_array_equal(states[..., pixels:], raw[..., pixels:])
+    assert not np.allclose(states[..., :pixels], raw[..., :pixels])
 
 
 def test_wrappers_that_change_observations_outside_vec_normalize_keep_the_old_behaviour(monkeypatch):

@@ -38,7 +38,7 @@ from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, 
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
 from sb3_pevfa.pevfa.history import PolicyHistory
-from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize, warn_once
+from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -134,12 +134,6 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             renormalize=renormalize,
         )
         self.history.normalizer = vec_normalize
-        if renormalize and self.history.n_state_action_pairs and not self.history.raw_states:
-            warn_once(
-                "state-action pairs",
-                f"Under VecNormalize, the state-action pairs of {self.observation_space} observations keep the "
-                "normalisation of their record (only those of plain Box observations are re-expressed)",
-            )
         self.recorder = PolicyRecorder(self.history, self.policy.layout)
         self._raw_rollout: RolloutRecorder | None = None
         self._last_raw_obs: np.ndarray | dict | None = None  # raw of _last_obs (renormalize)

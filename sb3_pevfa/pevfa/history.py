@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape, is_image_space
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa.pevfa.normalization import reward_scale
@@ -159,9 +159,9 @@ class PolicyHistory:
         self.renormalize = bool(renormalize)
         #: The VecNormalize whose statistics reads are expressed in (``renormalize``; set by the algorithm)
         self.normalizer: VecNormalize | None = None
-        #: SPR probe states are stored raw (``renormalize``) where they are the observation itself (a non-image Box)
-        box = isinstance(observation_space, spaces.Box) and not is_image_space(observation_space)
-        self.raw_states = self.renormalize and box
+        #: SPR probe states are stored raw (``renormalize``): VecNormalize takes Box and Dict spaces, and every key it
+        #: normalises becomes a float Box, whose flattened form holds the observation itself
+        self.raw_states = self.renormalize and isinstance(observation_space, (spaces.Box, spaces.Dict))
         self.rng = np.random.default_rng(seed)
         self._obs_keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
         self.reset()
@@ -295,10 +295,29 @@ class PolicyHistory:
                 shape = records[0][name].shape
                 data[name] = np.zeros((len(records), 0, *shape[1:]), np.float32)
         if self.raw_states and not raw and "states" in fields and data["states"].size:  # probe states, today's statistics
-            states = data["states"]
-            normalized = self.normalized(states.reshape(-1, *self.observation_space.shape))
-            data["states"] = np.asarray(normalized, np.float32).reshape(states.shape)
+            data["states"] = self.normalized_states(data["states"])
         return data
+
+    def normalized_states(self, states: np.ndarray) -> np.ndarray:
+        """Raw flattened probe states ``(..., state_dim)`` in today's statistics: what flattening the normalised
+        observations gives. A Dict's flattened state is its keys' flattened parts in the space's order; each
+        normalised key's part (a Box: flattening keeps its raw values) goes through ``normalize_obs``."""
+        flat = states.reshape(-1, states.shape[-1])
+        if self._obs_keys is None:
+            normalized = self.normalized(flat.reshape(-1, *self.observation_space.shape))
+            return np.asarray(normalized, np.float32).reshape(states.shape)
+        env, parts, start = self._require_normalizer(), {}, 0
+        for key in self._obs_keys:
+            size = state_dim(self.observation_space.spaces[key])
+            parts[key] = slice(start, start + size)
+            start += size
+        keys = [key for key in self._obs_keys if key in env.norm_obs_keys] if env.norm_obs else []
+        shapes = {key: self.observation_space.spaces[key].shape for key in keys}
+        normalized = env.normalize_obs({key: flat[:, parts[key]].reshape(-1, *shapes[key]) for key in keys})
+        result = flat.astype(np.float32)  # a copy
+        for key in keys:
+            result[:, parts[key]] = normalized[key].reshape(len(flat), -1)
+        return result.reshape(states.shape)
 
     # ------------------------------------------------------------------ samples
     @property

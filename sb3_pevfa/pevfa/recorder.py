@@ -6,7 +6,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa.pevfa.history import ObsBatch, PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder
-from sb3_pevfa.pevfa.records import ActorLayout, batch_size, record_policy, rows
+from sb3_pevfa.pevfa.records import ActorLayout, batch_size, flat_states, record_policy, rows
 
 
 class PolicyRecorder:
@@ -53,7 +53,7 @@ class PolicyRecorder:
             # the policy acts at the probes in today's statistics; the record keeps them raw where it can
             record = record_policy(policy, self.layout, None if probes is None else history.normalized(probes), code)
             if probes is not None and history.raw_states:
-                record["states"] = np.asarray(probes, np.float32).reshape(len(record["states"]), -1)
+                record["states"] = flat_states(probes, policy.observation_space)
             latest = history.add_record(record, **info)
         return latest
 

@@ -136,6 +136,12 @@ def flatten_observations(obs: th.Tensor | dict[str, th.Tensor], observation_spac
     return processed.flatten(start_dim=1)
 
 
+def flat_states(obs: np.ndarray | dict[str, np.ndarray], observation_space: spaces.Space) -> np.ndarray:
+    """:func:`flatten_observations` of a numpy batch, as float32 numpy (SPR's probe states)."""
+    with th.no_grad():
+        return flatten_observations(obs_as_tensor(obs, th.device("cpu")), observation_space).numpy().astype(np.float32)
+
+
 def encode_actions(actions: th.Tensor, action_space: spaces.Space) -> th.Tensor:
     """Actions in rollout-buffer layout ``(..., action_dim)`` to network inputs (one-hot for discrete spaces)."""
     if isinstance(action_space, spaces.Discrete):
