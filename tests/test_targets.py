@@ -10,6 +10,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa import PolicyRecord, PPOPeVFA
+from sb3_pevfa.pevfa import history as history_module
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.targets import lambda_returns
 
@@ -81,9 +82,11 @@ def test_recomputing_with_the_rollouts_own_values_gives_its_returns(tmp_path, bu
 
 
 @pytest.mark.parametrize("normalized", [False, True], ids=["plain", "vecnormalize"])
-def test_the_model_recomputes_historical_targets_with_each_policys_chi(normalized):
+def test_the_model_recomputes_historical_targets_with_each_policys_chi(normalized, monkeypatch):
     """By hand for one historical policy; under VecNormalize in the statistics of the moment of recomputation (they
-    are moved first): observations normalised anew, raw rewards through today's normalize_reward."""
+    are moved first): observations normalised anew, raw rewards through today's normalize_reward. The critic
+    evaluates the history in chunks of 5 rows here, which must not reorder anything."""
+    monkeypatch.setattr(history_module, "NORMALIZE_CHUNK", 5)
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1, seed=0)) if normalized else "Pendulum-v1"
     model = PPOPeVFA("MlpPolicy", env, history_targets="recomputed", **FAST)
     model.learn(256)

@@ -15,7 +15,7 @@ from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_pevfa.pevfa.normalization import reward_scale
-from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, state_dim
+from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, rows, state_dim
 from sb3_pevfa.pevfa.targets import lambda_returns
 
 #: Version of the file format written by :meth:`PolicyHistory.save`.
@@ -25,6 +25,8 @@ HISTORY_FORMAT_VERSION = 4
 _READABLE_VERSIONS = (1, 2, 3, 4)
 #: Signature entries that older files lack, and the value they then mean
 _SIGNATURE_DEFAULTS = {"transitions": False, "renormalize": False}
+#: Rows normalised and evaluated at a time when targets are recomputed (bounds the temporaries)
+NORMALIZE_CHUNK = 16384
 
 ObsBatch = np.ndarray | dict[str, np.ndarray]
 
@@ -526,11 +528,11 @@ class PolicyHistory:
             return 0
         logical = np.concatenate([np.arange(start, start + count) for _, start, count in chosen])
         rows = self._samples.get(logical)
-        values = np.asarray(value_fn(self.normalized(self._observations(rows)), rows["policy_ids"]), np.float32).reshape(-1)
+        values = self._values(value_fn, self._observations(rows), rows["policy_ids"])
         boots = [self._bootstraps[pid] for pid, _, _ in chosen]
         last_obs = {name: np.concatenate([b[name] for b in boots]) for name in self._obs_specs()}
         last_ids = np.concatenate([np.full(len(b["last_episode_starts"]), pid) for (pid, _, _), b in zip(chosen, boots)])
-        last_values = np.asarray(value_fn(self.normalized(self._observations(last_obs)), last_ids), np.float32).reshape(-1)
+        last_values = self._values(value_fn, self._observations(last_obs), last_ids)
         rewards = rows["rewards"]
         if self.renormalize:  # today's reward normalisation of the raw rewards, and the bootstraps rescaled
             normalizer = self._require_normalizer()
@@ -566,6 +568,16 @@ class PolicyHistory:
         if self.renormalize:  # the new targets are in today's reward scale
             self._samples.arrays["reward_scales"][self._samples.positions(logical)] = reward_scale(self._require_normalizer())
         return len(targets)
+
+    def _values(self, value_fn: Callable[[ObsBatch, np.ndarray], np.ndarray], observations: ObsBatch, policy_ids: np.ndarray):
+        """``value_fn`` of stored observations in today's statistics, :data:`NORMALIZE_CHUNK` rows at a time: under
+        ``renormalize``, normalising the whole FIFO at once would hold several float64 copies of it."""
+        values = []
+        for start in range(0, len(policy_ids), NORMALIZE_CHUNK):
+            part = slice(start, start + NORMALIZE_CHUNK)
+            chunk = rows(observations, part)
+            values.append(np.asarray(value_fn(self.normalized(chunk), policy_ids[part]), np.float32).reshape(-1))
+        return np.concatenate(values) if values else np.zeros(0, np.float32)
 
     def samples(self, raw: bool = False) -> tuple[ObsBatch, np.ndarray, np.ndarray]:
         """All samples, oldest first: ``(observations, targets, policy_ids)`` in today's statistics.
