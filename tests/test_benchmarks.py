@@ -1,5 +1,6 @@
 """The benchmark scripts run end to end at a tiny budget and write what the docs cite (the long runs are not tests)."""
 
+import io
 import json
 import pathlib
 import subprocess
@@ -7,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from stable_baselines3.common.logger import HumanOutputFormat
 
 ROOT = pathlib.Path(__file__).parents[1]
 
@@ -40,6 +42,14 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
     again = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0",
                  "--timesteps", "2048", "--out", str(out), cwd=ROOT)  # fmt: skip
     assert "max" not in again.split("**")[0]  # no run message before the report
+    # the training logs of the same runs: kept compactly, and reported around each run's peak
+    report = _run(str(ROOT / "benchmarks" / "training_logs.py"), "--out", str(out), "--env", "InvertedPendulum-v5",
+                  "--plot", str(tmp_path / "logs.png"), cwd=ROOT)  # fmt: skip
+    logs = {path.stem: json.loads(path.read_text()) for path in (out / "logs").glob("*.json")}
+    assert set(logs) == set(runs)
+    # two evaluation tables and the final one (a single 2048-step rollout logs no update: SB3 logs it at the next)
+    assert logs["InvertedPendulum-v5_pevfa-opr_seed0"]["time/total_timesteps"] == [1024, 2048, 2048]
+    assert "| pevfa-opr | 2 |" in report and "| ppo | 2 |" in report and (tmp_path / "logs.png").stat().st_size > 0
 
 
 def test_speed_encoder_and_memory_benchmarks(tmp_path):
@@ -107,3 +117,23 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     assert aggregate.stratified_bootstrap_ci({"a": np.ones(3), "b": np.full(2, 2.0)}, aggregate.mean) == (1.5, 1.5)
     # tasks weigh equally: task a has 2 of 3 runs above 1.5, task b 1 of 2
     np.testing.assert_allclose(aggregate.performance_profile(scores, np.array([0.5, 1.5, 5.0])), [1.0, (2 / 3 + 1 / 2) / 2, 0])
+
+
+def test_training_logs_parse_sb3s_own_tables():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import training_logs
+
+    stream = io.StringIO()
+    output = HumanOutputFormat(stream)
+    for table in (
+        {"time/total_timesteps": 2048, "train/explained_variance": 0.5, "pevfa/value_chi_gradient": 1e-3},
+        {"eval/mean_reward": 10.0, "time/total_timesteps": 4096},  # an evaluation: no training keys
+        {"time/total_timesteps": 4096, "train/explained_variance": -0.25, "train/std": 0.9},
+    ):
+        output.write(table, dict.fromkeys(table))
+    logs = training_logs.parse_log("progress bar noise\n" + stream.getvalue())
+    assert logs["time/total_timesteps"] == [2048, 4096, 4096]
+    np.testing.assert_array_equal(logs["train/explained_variance"], [0.5, np.nan, -0.25])
+    np.testing.assert_array_equal(logs["pevfa/value_chi_gradient"], [1e-3, np.nan, np.nan])
+    grid = np.array([2048.0, 3072.0, 4096.0])
+    np.testing.assert_allclose(training_logs.interpolated(grid, logs, "train/explained_variance"), [0.5, 0.125, -0.25])

@@ -1,0 +1,190 @@
+"""What the training logs of a learning benchmark say after the peak: why a return falls once it has peaked.
+
+Reads the SB3 log tables that every run of ``benchmarks/learning.py`` printed (``<out>/runs/<run>/output.log``,
+one table per iteration), keeps them compactly as ``<out>/logs/<run>.json`` (the run folders are not kept), and
+for one env reports per variant, mean over seeds:
+
+- the evaluation curve's peak (max average return), the final return (mean of the last three evaluations) and the
+  drop between them, and where the peak came;
+- training signals before and after the peak: the on-policy critic's explained variance and value loss, the
+  critic's loss on historical samples, the policy's KL per update, its std, and what tells whether the critic can
+  tell policies apart (saturated embedding units, ``||dV/dchi||``).
+
+    python benchmarks/training_logs.py --out docs/results/ablation_targets_critic --env Hopper-v5 \
+        --plot docs/results/ablation_targets_critic_logs.png
+"""
+
+import argparse
+import contextlib
+import json
+import pathlib
+import re
+
+import numpy as np
+
+#: Logged keys kept per iteration
+KEYS = (
+    "time/total_timesteps",
+    "rollout/ep_rew_mean",
+    "train/explained_variance",
+    "train/value_loss",
+    "train/approx_kl",
+    "train/clip_fraction",
+    "train/std",
+    "pevfa/history_value_loss",
+    "pevfa/embedding_norm",
+    "pevfa/embedding_saturated_fraction",
+    "pevfa/value_chi_gradient",
+)
+ROW = re.compile(r"^\|\s+(\S+)\s+\|\s+(\S*)\s+\|$")
+
+
+def parse_log(text: str) -> dict[str, list[float]]:
+    """SB3's human-readable log tables -> ``{key: [value per table]}`` for :data:`KEYS` (NaN where a table lacks one)."""
+    tables, current, section, inside = [], {}, "", False
+    for line in text.splitlines():
+        if line.startswith("----"):
+            if inside and current:
+                tables.append(current)
+            current, section, inside = {}, "", not inside
+            continue
+        match = ROW.match(line.strip())
+        if not inside or match is None:
+            continue
+        name, value = match.groups()
+        if name.endswith("/") and not value:
+            section = name
+        elif value:
+            with contextlib.suppress(ValueError):  # e.g. a progress bar's text
+                current[section + name] = float(value)
+    tables = [table for table in tables if "time/total_timesteps" in table]
+    return {key: [table.get(key, float("nan")) for table in tables] for key in KEYS}
+
+
+def collect(out: pathlib.Path) -> None:
+    """``<out>/logs/<run>.json`` from every ``<out>/runs/<run>/output.log`` (kept ones are not read again)."""
+    (out / "logs").mkdir(exist_ok=True)
+    for log in sorted(out.glob("runs/*/output.log")):
+        target = out / "logs" / f"{log.parent.name}.json"
+        if (out / f"{log.parent.name}.json").exists() and not target.exists():  # finished runs only
+            target.write_text(json.dumps(parse_log(log.read_text(errors="replace"))))
+
+
+def runs_of(out: pathlib.Path, env_id: str) -> dict[str, list[tuple[dict, dict]]]:
+    """variant -> [(result, logs)] of the finished runs of ``env_id``."""
+    found: dict[str, list[tuple[dict, dict]]] = {}
+    for path in sorted(out.glob(f"{env_id}_*.json")):
+        result = json.loads(path.read_text())
+        logs_path = out / "logs" / path.name
+        logs = json.loads(logs_path.read_text()) if logs_path.exists() else {}
+        found.setdefault(result["variant"], []).append((result, logs))
+    return found
+
+
+def window_mean(logs: dict, key: str, low: float, high: float) -> float:
+    steps, values = np.asarray(logs.get("time/total_timesteps", [])), np.asarray(logs.get(key, []), dtype=float)
+    chosen = values[(steps > low) & (steps <= high)] if len(values) else values
+    return float(np.nanmean(chosen)) if np.isfinite(chosen).any() else float("nan")
+
+
+def finite_mean(values: list[float]) -> float:
+    """Mean of the finite values (a run whose peak is its last evaluation has no "after"), NaN if none."""
+    finite = [value for value in values if np.isfinite(value)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def report(out: pathlib.Path, env_id: str) -> str:
+    """Markdown: the peak and the fall per variant, and each signal averaged before and after the peak."""
+    lines = [
+        f"**{env_id}**: peak and fall (mean over seeds; final = mean of the last three evaluations)",
+        "",
+        "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    signals = [key for key in KEYS if key.startswith(("train/", "pevfa/"))]
+    phase_rows = []
+    for variant, runs in runs_of(out, env_id).items():
+        peaks, finals, peak_steps, falls = [], [], [], 0
+        before = {key: [] for key in signals}
+        after = {key: [] for key in signals}
+        for result, logs in runs:
+            curve = result["curve"]
+            returns = np.array([point["mean_return"] for point in curve])
+            steps = np.array([point["timesteps"] for point in curve])
+            peak, final = returns.max(), returns[-3:].mean()
+            peaks.append(peak), finals.append(final), peak_steps.append(steps[returns.argmax()])
+            falls += final < 0.8 * peak
+            for key in signals:
+                before[key].append(window_mean(logs, key, 0, steps[returns.argmax()]))
+                after[key].append(window_mean(logs, key, steps[returns.argmax()], np.inf))
+        lines.append(
+            f"| {variant} | {len(runs)} | {np.mean(peaks):.0f} | {np.mean(peak_steps) / 1000:.0f}k | {np.mean(finals):.0f} | "
+            f"{(np.mean(finals) / np.mean(peaks) - 1) * 100:+.0f} % | {falls} of {len(runs)} |"
+        )
+        cells = [f"{finite_mean(before[key]):.3g} / {finite_mean(after[key]):.3g}" for key in signals]
+        phase_rows.append(f"| {variant} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Training signals, mean before / after each run's peak (NaN: not logged by that variant):",
+        "",
+        "| variant | " + " | ".join(key.split("/")[1] for key in signals) + " |",
+        "|---|" + "---|" * len(signals),
+        *phase_rows,
+    ]
+    return "\n".join(lines)
+
+
+def interpolated(grid: np.ndarray, logs: dict, key: str) -> np.ndarray:
+    """``key`` on ``grid`` from the iterations that logged it (evaluation tables log no training keys)."""
+    steps, values = np.asarray(logs["time/total_timesteps"]), np.asarray(logs[key], dtype=float)
+    finite = np.isfinite(values)
+    return np.interp(grid, steps[finite], values[finite]) if finite.any() else np.full(len(grid), np.nan)
+
+
+def plot(out: pathlib.Path, env_ids: list[str], path: pathlib.Path) -> None:
+    """Per env (columns): the evaluation curve and the training signals (rows), mean over seeds per variant."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = ["eval", "train/explained_variance", "train/value_loss", "pevfa/history_value_loss", "train/approx_kl",
+            "train/std", "pevfa/embedding_saturated_fraction", "pevfa/value_chi_gradient"]  # fmt: skip
+    figure, axes = plt.subplots(len(keys), len(env_ids), figsize=(6 * len(env_ids), 2.2 * len(keys)), squeeze=False)
+    for column, env_id in enumerate(env_ids):
+        for variant, runs in runs_of(out, env_id).items():
+            for row, key in enumerate(keys):
+                if key == "eval":
+                    grid = np.array([point["timesteps"] for point in runs[0][0]["curve"]])
+                    values = [[point["mean_return"] for point in result["curve"]] for result, _ in runs]
+                else:
+                    grid = np.linspace(10_000, runs[0][0]["timesteps"], 60)
+                    values = [interpolated(grid, logs, key) for _, logs in runs if logs and key in logs]
+                values = np.asarray(values, dtype=float)
+                if values.size and np.isfinite(values).all(axis=0).any():
+                    axes[row, column].plot(grid, values.mean(axis=0), label=variant)
+                axes[row, column].set_ylabel(key.split("/")[-1], fontsize=8)
+        axes[0, column].set_title(env_id)
+        axes[-1, column].set_xlabel("env steps")
+        for row in (2, 3):
+            axes[row, column].set_yscale("log")
+    axes[0, 0].legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=pathlib.Path, required=True, help="a benchmarks/learning.py result folder")
+    parser.add_argument("--env", nargs="+", default=["Hopper-v5"])
+    parser.add_argument("--plot", type=pathlib.Path, default=None)
+    args = parser.parse_args()
+    collect(args.out)
+    for env_id in args.env:
+        print(report(args.out, env_id), end="\n\n")
+    if args.plot is not None:
+        plot(args.out, args.env, args.plot)
+
+
+if __name__ == "__main__":
+    main()
