@@ -11,7 +11,7 @@ from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.envs import FakeImageEnv
 from stable_baselines3.common.policies import ActorCriticPolicy
-from stable_baselines3.common.vec_env import VecFrameStack, VecNormalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNormalize
 
 from sb3_pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa import normalization
@@ -138,6 +138,17 @@ def test_dict_probe_states_with_a_normalised_image_key():
     np.testing.assert_allclose(states[..., :pixels], image.reshape(raw[..., :pixels].shape), rtol=1e-6)
     np.testing.assert_array_equal(states[..., pixels:], raw[..., pixels:])
     assert not np.allclose(states[..., :pixels], raw[..., :pixels])
+
+
+def test_wrappers_that_leave_observations_alone_may_sit_outside_vec_normalize(monkeypatch):
+    from stable_baselines3.common.vec_env import VecCheckNan, VecMonitor
+
+    monkeypatch.setattr(normalization, "_warned", set())
+    env = VecCheckNan(VecMonitor(VecNormalize(DummyVecEnv([lambda: gym.make("Pendulum-v1")] * 2))))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing to announce
+        model = PPOPeVFA("MlpPolicy", env, **FAST)
+    assert model.history.renormalize and model.history.normalizer is env.venv.venv
 
 
 def test_wrappers_that_change_observations_outside_vec_normalize_keep_the_old_behaviour(monkeypatch):

@@ -19,7 +19,7 @@ import warnings
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecEnvWrapper, VecMonitor, VecNormalize, VecVideoRecorder
 
 from sb3_pevfa.pevfa.records import stack_observations
 
@@ -32,7 +32,7 @@ def reward_scale(env: VecNormalize) -> float:
 
 
 #: Wrappers that may sit outside the VecNormalize: they leave the observations as they are
-_TRANSPARENT_WRAPPERS = (VecMonitor, VecCheckNan)
+_TRANSPARENT_WRAPPERS = (VecMonitor, VecCheckNan, VecVideoRecorder)
 
 
 def find_vec_normalize(env: VecEnv | None, observation_space: spaces.Space) -> VecNormalize | None:
