@@ -80,8 +80,9 @@ def test_vectorized_and_normalized_envs(representation):
     obs, targets, _ = history.samples()
     np.testing.assert_array_equal(obs, env.normalize_obs(raw_obs))
     np.testing.assert_allclose(targets, raw_targets * scales / np.sqrt(env.ret_rms.var + env.epsilon), rtol=1e-6)
-    batch_obs, batch_targets, _ = history.sample_grouped(64, 4)
-    assert np.isin(batch_obs, obs).all(axis=1).all() and np.isin(batch_targets, targets).all()
+    batch_obs, batch_targets, batch_ids = history.sample_grouped(64, 4)
+    table = {(row.tobytes(), target, pid) for row, target, pid in zip(obs, targets, history.samples()[2])}
+    assert all((row.tobytes(), t, pid) in table for row, t, pid in zip(batch_obs, batch_targets, batch_ids))  # whole rows
     if representation == "spr":  # the probe states of every record: raw, read in today's statistics
         raw_states = history.records(history.policy_ids, raw=True)["states"]
         np.testing.assert_allclose(np.hypot(raw_states[..., 0], raw_states[..., 1]), 1.0, rtol=1e-5)
