@@ -19,11 +19,12 @@ from torch import nn
 
 from sb3_pevfa import PolicyRecord, PPOPeVFA
 
+#: Each embedding stream, spelled out (the defaults changed: ReLU + layer-normalised chi since the 300k ablation)
 SETTINGS = {
-    "tanh (default)": {},
-    "relu (paper)": dict(critic_activation_fn=nn.ReLU),
-    "tanh + layernorm chi": dict(chi_normalization="layernorm"),
-    "relu + layernorm chi": dict(critic_activation_fn=nn.ReLU, chi_normalization="layernorm"),
+    "tanh (the actor's; the earlier default)": dict(critic_activation_fn=None, chi_normalization="none"),
+    "relu (paper)": dict(critic_activation_fn=nn.ReLU, chi_normalization="none"),
+    "tanh + layernorm chi": dict(critic_activation_fn=None, chi_normalization="layernorm"),
+    "relu + layernorm chi (default)": dict(critic_activation_fn=nn.ReLU, chi_normalization="layernorm"),
 }
 
 

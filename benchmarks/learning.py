@@ -56,10 +56,15 @@ VARIANTS: dict[str, dict | None] = {
     ),
     # the paper's historical updates (64 uniform samples per 10 steps, the encoder also trained on the rollout)
     "pevfa-opr-paper-schedule": dict(PAPER_SCHEDULE),
-    # the critic's embedding stream (issue: chi saturated a Tanh stream): the paper's ReLU, and a layer-normalised chi
-    "pevfa-opr-relu": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU)"),
+    # the critic's embedding stream (issue: chi saturated a Tanh stream), each spelled out: the paper's ReLU, a
+    # layer-normalised chi, both (the default since the 300k ablation), and the earlier default (the actor's Tanh)
+    "pevfa-opr-relu": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='none')"),
     "pevfa-opr-relu-layernorm": dict(policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='layernorm')"),
-    "pevfa-opr-layernorm": dict(policy_kwargs="dict(chi_normalization='layernorm')"),
+    "pevfa-opr-layernorm": dict(policy_kwargs="dict(critic_activation_fn=None, chi_normalization='layernorm')"),
+    "pevfa-opr-tanh": dict(policy_kwargs="dict(critic_activation_fn=None, chi_normalization='none')"),
+    "pevfa-opr-relu-layernorm-recomputed": dict(
+        policy_kwargs="dict(critic_activation_fn=nn.ReLU, chi_normalization='layernorm')", history_targets="recomputed"
+    ),
     # targets of the historical samples: recomputed with the current critic, or the paper's Monte-Carlo returns
     "pevfa-opr-recomputed": dict(history_targets="recomputed"),
     "pevfa-opr-mc": dict(value_target_lambda=1.0),

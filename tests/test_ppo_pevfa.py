@@ -712,11 +712,11 @@ def test_the_critic_reads_chi_from_its_arguments():
     chi = policy.embed(records)
     with th.no_grad():
         # the default chi is the behaviour policy's: the latest record, after learn() the trained policy
-        np.testing.assert_allclose(policy.predict_values(obs), policy.predict_values(obs, chi[-1:]), rtol=1e-6)
+        np.testing.assert_allclose(policy.predict_values(obs), policy.predict_values(obs, chi[-1:]), rtol=1e-5, atol=1e-6)
         first, last = policy.predict_values(obs, chi[:1]), policy.predict_values(obs, chi[-1:])
         assert (first - last).abs().max() > 1e-5  # V depends on which policy chi describes (untrained: 1e-4 apart)
         per_row = policy.predict_values(obs[:2], chi[[0, -1]])  # one chi per observation
-        np.testing.assert_allclose(per_row.flatten(), [first[0, 0], last[1, 0]], rtol=1e-5)
+        np.testing.assert_allclose(per_row.flatten(), [first[0, 0], last[1, 0]], rtol=1e-5, atol=1e-6)
         actions, values, _ = policy(obs, deterministic=True, chi=chi[:1])
         np.testing.assert_allclose(values, first, rtol=1e-6)
         values, _, _ = policy.evaluate_actions(obs, actions, chi=chi[:1])
@@ -862,8 +862,45 @@ def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():
     assert th.equal(module_parameters(model.policy.representation), encoder)  # no step spread it
 
 
+def test_the_default_critic_reads_a_layer_normalised_chi_through_relus():
+    """The default embedding stream (the ablation's choice, docs/benchmarks.md): chi layer-normalised, then ReLU
+    layers, so V depends on chi's direction and not on its scale, which had driven the Tanh stream flat."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).learn(128)
+    policy, head = model.policy, model.policy.value_net
+    assert isinstance(head.chi_norm, th.nn.LayerNorm) and any(isinstance(m, th.nn.ReLU) for m in head.embedding_net)
+    policy.set_training_mode(False)
+    obs = th.as_tensor(np.stack([model.observation_space.sample() for _ in range(4)]))
+    with th.no_grad():
+        chi = policy.behaviour_embedding().expand(4, -1)
+        # (10x: LayerNorm's epsilon no longer matters against chi's variance)
+        large, small = policy.predict_values(obs, 1e4 * chi), policy.predict_values(obs, 10 * chi)
+        np.testing.assert_allclose(large, small, rtol=1e-5, atol=1e-6)
+        assert not th.allclose(policy.predict_values(obs, -chi), policy.predict_values(obs, chi))
+    paper = PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(chi_normalization="none"), **FAST)
+    assert isinstance(paper.policy.value_net.chi_norm, th.nn.Identity)
+    with th.no_grad():  # without the normalisation the scale of chi reaches V
+        chi = paper.policy.behaviour_embedding().expand(4, -1)
+        assert not th.allclose(paper.policy.predict_values(obs, 1e3 * chi), paper.policy.predict_values(obs, chi))
+    with pytest.raises(ValueError, match="one-dimensional chi is constant: use 'none'"):
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", embedding_dim=1, **FAST)
+    with pytest.raises(ValueError, match=r"valid choices: \('none', 'layernorm'\)"):
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(chi_normalization="batchnorm"), **FAST)
+
+
+def test_a_model_with_the_earlier_critic_asks_for_its_policy_kwargs(tmp_path):
+    earlier = dict(critic_activation_fn=None, chi_normalization="none")
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=earlier, **FAST)
+    model.save(tmp_path / "model")
+    with pytest.raises(ValueError, match=r"custom_objects=.*'chi_normalization': 'none'"):  # as a file of 0.1.0's past
+        PPOPeVFA.load(tmp_path / "model", custom_objects={"policy_kwargs": {}})
+    loaded = PPOPeVFA.load(tmp_path / "model", custom_objects={"policy_kwargs": earlier})
+    assert isinstance(loaded.policy.value_net.chi_norm, th.nn.Identity)
+    assert str(loaded.policy.value_net.embedding_net) == str(model.policy.value_net.embedding_net)  # Tanh layers
+
+
 def test_logs_that_show_whether_the_critic_tells_policies_apart(csv_logger):
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    tanh_stream = dict(critic_activation_fn=None, chi_normalization="none")  # the actor's Tanh, chi unnormalised
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=tanh_stream, **FAST)
     model.set_logger(csv_logger[0])
     model.learn(128)
     last = read_progress(csv_logger[1])[-1]

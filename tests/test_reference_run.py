@@ -50,8 +50,9 @@ def reference_numbers(name: str, fast_path: bool) -> dict[str, float]:
     config = dict(CONFIGS[name])
     env = make_vec_env(config.pop("env"), n_envs=2, seed=0)
     schedule = {**PAPER_SCHEDULE, "history_train_freq": 16}  # the schedule of the versions that recorded them
+    critic = dict(critic_activation_fn=None, chi_normalization="none")  # their critic: the actor's Tanh, chi as it is
     model = PPOPeVFA("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=2, history_learning_starts=0,
-                     seed=0, fast_path=fast_path, **schedule, **config)  # fmt: skip
+                     seed=0, fast_path=fast_path, policy_kwargs=critic, **schedule, **config)  # fmt: skip
     model.learn(4 * 128)
     policy = model.policy
     critic_ids = {id(p) for p in policy.critic_parameters()}

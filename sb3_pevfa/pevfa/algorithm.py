@@ -502,7 +502,17 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have
         """
-        model = super().load(path, *args, **kwargs)
+        try:
+            model = super().load(path, *args, **kwargs)
+        except RuntimeError as error:
+            if "value_net.chi_norm" not in str(error):
+                raise
+            raise ValueError(
+                f"{path} was saved with another critic embedding stream than this version's default (ReLU over a "
+                "layer-normalised chi): a model saved before 0.1.0's change loads with "
+                "custom_objects={'policy_kwargs': {'critic_activation_fn': None, 'chi_normalization': 'none', ...}} "
+                f"(plus its own policy_kwargs). {error}"
+            ) from error
         history = checkpoint_history(path) if isinstance(path, (str, pathlib.Path)) else None
         if history is not None:  # a checkpoint of CheckpointCallback: its history was saved beside it
             try:

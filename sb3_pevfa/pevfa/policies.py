@@ -54,8 +54,11 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param critic_embedding_arch: Embedding stream of the critic (paper: [64])
     :param critic_head_arch: Layers after the streams are combined (paper: [128])
     :param critic_combine: ``concat`` (paper) or ``product``
-    :param critic_activation_fn: Activation of the embedding stream and head (default: ``activation_fn``)
-    :param chi_normalization: ``"none"`` (paper) or ``"layernorm"``: chi normalised before the embedding stream
+    :param critic_activation_fn: Activation of the embedding stream and head: ReLU (the paper's, default), any
+        activation class, or None for the actor's ``activation_fn`` (SB3's Tanh; the default before 0.1.0's
+        ablation, which saturates)
+    :param chi_normalization: ``"layernorm"`` (default, not in the paper): chi normalised before the embedding
+        stream; ``"none"`` (the paper's) reads chi as the representation gives it
     :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
     :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
         (see :mod:`sb3_pevfa.pevfa.objectives`)
@@ -79,8 +82,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
         critic_head_arch: list[int] | tuple[int, ...] = (128,),
         critic_combine: str = "concat",
-        critic_activation_fn: type[nn.Module] | None = None,
-        chi_normalization: str = "none",
+        critic_activation_fn: type[nn.Module] | None = nn.ReLU,
+        chi_normalization: str = "layernorm",
         representation_objectives: tuple[str, ...] | list[str] = (),
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
