@@ -8,6 +8,11 @@ with open(os.path.join("sb3_pevfa", "version.txt")) as file_handler:
 with open("README.md") as file_handler:
     long_description = file_handler.read()
 
+# rl-zoo3's enjoy imports `requests`, its plots need `seaborn` and its Optuna report `pandas`, undeclared by it;
+# PostgreSQL storages of Optuna need psycopg (SQLAlchemy 2 default driver); plotly draws Optuna's interactive plots
+# of a study (examples/optuna_search.py).
+ZOO = ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=3.0", "requests", "seaborn", "pandas", "psycopg[binary]", "plotly"]
+
 setup(
     name="sb3-pevfa",
     version=__version__,
@@ -37,32 +42,13 @@ setup(
     ],
     extras_require={
         "mujoco": ["gymnasium[mujoco]>=1.0"],
-        # rl-zoo3's enjoy imports `requests`, its plots need `seaborn` and its Optuna report `pandas`, undeclared by it;
-        # PostgreSQL storages of Optuna need psycopg (SQLAlchemy 2 default driver).
-        # plotly: Optuna's interactive plots of a study (examples/optuna_search.py)
-        "zoo": [
-            "rl_zoo3>=2.4.0",
-            "sb3-contrib>=2.4.0",
-            "optuna>=3.0",
-            "requests",
-            "seaborn",
-            "pandas",
-            "psycopg[binary]",
-            "plotly",
-        ],
+        "zoo": ZOO,
         "tests": [
             "pytest",
             "pytest-xdist",
             "ruff",
             "gymnasium[mujoco]>=1.0",
-            "rl_zoo3>=2.4.0",
-            "sb3-contrib>=2.4.0",
-            "optuna>=3.0",
-            "requests",
-            "seaborn",
-            "pandas",
-            "psycopg[binary]",
-            "plotly",
+            *ZOO,
             # rl-zoo3's record_video of classic-control tasks renders with pygame
             "gymnasium[classic-control]",
             "matplotlib",
