@@ -90,6 +90,20 @@ def test_vectorized_and_normalized_envs(representation):
         np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
 
 
+def test_the_first_raw_observation_of_a_run_under_vec_normalize():
+    """The raw observation that the first action of a run (after learn's env reset) is taken at is the one the
+    history keeps: with frozen, non-trivial statistics, the history's first rollout reads back as the buffer."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
+    env.obs_rms.mean[:] = [0.3, -0.2, 1.0]
+    env.obs_rms.var[:] = [0.5, 2.0, 4.0]
+    env.training = False
+    model = PPOPeVFA("MlpPolicy", env, **{**FAST, "n_steps": 32}).learn(64)
+    obs, _, ids = model.history.samples()
+    assert set(ids) == {model.history.policy_ids[0]}  # the first policy's rollout, from learn's reset
+    seen = model.rollout_buffer.observations.reshape(2, 32, 3).swapaxes(0, 1).reshape(-1, 3)  # env-major after PPO
+    np.testing.assert_array_equal(obs, seen)
+
+
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_dict_observations_under_vec_normalize_with_some_keys(representation, monkeypatch):
     """``norm_obs_keys``: the normalised key reads in today's statistics, the other stays raw; so do SPR's flattened
