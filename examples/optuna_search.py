@@ -12,7 +12,9 @@ Several workers sharing one study (create it once, then run the same command in 
 
 The search is rl-zoo3's (``python -m sb3_pevfa.train -optimize``, i.e. its ``ExperimentManager``): each trial starts
 from the env's entry of the shipped ``hyperparams/ppo_pevfa.yml`` (``n_envs``, ``normalize``, ``policy_kwargs``...)
-and overrides only what it samples (rl-zoo3's PPO space plus PeVFA's, ``sb3_pevfa.rl_zoo.hyperparams_opt``);
+and the sampled parameters replace the entry's (rl-zoo3's PPO space plus PeVFA's,
+``sb3_pevfa.rl_zoo.hyperparams_opt``; as in rl-zoo3, a sampled ``net_arch`` / ``activation_fn`` replaces the
+entry's whole ``policy_kwargs``);
 rl-zoo3's ``TrialEvalCallback`` evaluates and prunes, its samplers and pruners are chosen by name and its storages
 by URL. The study is then drawn under ``<out>/plots/``: interactive plotly pages (``optuna.visualization``, HTML)
 and the same plots as PNGs (``optuna.visualization.matplotlib``). rl-zoo3's own flags can follow ``--``.
@@ -50,7 +52,12 @@ def search(args: argparse.Namespace, zoo_args: list[str]) -> optuna.Study:
     ]  # fmt: skip
     if args.seed is not None:
         argv += ["--seed", str(args.seed)]
-    train.main(argv + zoo_args)
+    try:
+        train.main(argv + zoo_args)
+    except ValueError as error:  # rl-zoo3 reports study.best_trial, which raises when no trial completed
+        if "No trials are completed" not in str(error):
+            raise
+        print(f"no trial completed ({error})")
     return optuna.load_study(study_name=args.study_name, storage=storage_of(storage))
 
 
@@ -69,7 +76,7 @@ def save_plots(study: optuna.Study, folder: pathlib.Path) -> list[pathlib.Path]:
         try:
             figure = getattr(optuna.visualization, f"plot_{name}")(study)
             with_matplotlib = getattr(optuna.visualization.matplotlib, f"plot_{name}")(study)
-        except (ValueError, RuntimeError) as error:
+        except (ValueError, RuntimeError, ImportError) as error:  # ImportError: older Optuna's fANOVA needs scikit-learn
             print(f"{name}: not drawn ({error})")
             continue
         figure.write_html(folder / f"{name}.html", include_plotlyjs="directory")
@@ -92,12 +99,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sampler", default="tpe", choices=["random", "tpe", "auto"])
     parser.add_argument("--pruner", default="median", choices=["halving", "median", "none"])
     parser.add_argument("--storage", default=None, help="journal file (*.log), sqlite:///file.db or postgresql://...")
-    parser.add_argument("--study-name", default="ppo_pevfa")
+    parser.add_argument("--study-name", default=None, help="default: ppo_pevfa-<env> (one study per task)")
     parser.add_argument("--search-space", choices=["full", "small"], default="full")
     parser.add_argument("--seed", type=int, default=None, help="seeds the sampler and the trials (default: random)")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/optuna"), help="zoo logs and plots")
     parser.add_argument("--tiny", action="store_true", help="2 trials of 1024 steps in the small space (a smoke test)")
     args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    args.study_name = args.study_name or f"ppo_pevfa-{args.env}"
     if args.tiny:
         args.n_trials, args.timesteps, args.n_evaluations, args.eval_episodes, args.search_space = 2, 1024, 2, 2, "small"
     study = search(args, zoo_args)

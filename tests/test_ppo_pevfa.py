@@ -901,15 +901,27 @@ def test_the_default_critic_reads_a_layer_normalised_chi_through_relus():
         PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(chi_normalization="batchnorm"), **FAST)
 
 
-def test_a_model_with_the_earlier_critic_asks_for_its_policy_kwargs(tmp_path):
-    earlier = dict(critic_activation_fn=None, chi_normalization="none")
-    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=earlier, **FAST)
-    model.save(tmp_path / "model")
-    with pytest.raises(ValueError, match=r"custom_objects=.*'chi_normalization': 'none'"):  # as a file of 0.1.0's past
-        PPOPeVFA.load(tmp_path / "model", custom_objects={"policy_kwargs": {}})
-    loaded = PPOPeVFA.load(tmp_path / "model", custom_objects={"policy_kwargs": earlier})
-    assert isinstance(loaded.policy.value_net.chi_norm, th.nn.Identity)
-    assert str(loaded.policy.value_net.embedding_net) == str(model.policy.value_net.embedding_net)  # Tanh layers
+def test_models_load_with_the_critic_they_were_saved_with(tmp_path):
+    """New models save their critic's stream in policy_kwargs; a file without it (saved before 0.1.0 wrote it) is
+    of the earlier stream, the actor's Tanh over chi as it is, whatever today's default."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST)
+    assert model.policy_kwargs["chi_normalization"] == "layernorm"
+    assert model.policy_kwargs["critic_activation_fn"] is th.nn.ReLU
+    model.save(tmp_path / "today")
+    today = PPOPeVFA.load(tmp_path / "today")
+    assert isinstance(today.policy.value_net.chi_norm, th.nn.LayerNorm)
+    assert str(today.policy.value_net.embedding_net) == str(model.policy.value_net.embedding_net)  # ReLU layers
+    stream = dict(critic_activation_fn=None, chi_normalization="none")
+    earlier = PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=stream, **FAST)
+    earlier.save(tmp_path / "earlier")
+    old = PPOPeVFA.load(tmp_path / "earlier", custom_objects={"policy_kwargs": {}})  # as a file of 0.1.0's past reads
+    assert isinstance(old.policy.value_net.chi_norm, th.nn.Identity)
+    assert str(old.policy.value_net.embedding_net) == str(earlier.policy.value_net.embedding_net)  # Tanh layers
+    for name, parameter in earlier.policy.state_dict().items():
+        assert th.equal(parameter, old.policy.state_dict()[name]), name
+    # the earlier variants that set one of the two keys keep the other's earlier value
+    relu_only = PPOPeVFA.load(tmp_path / "earlier", custom_objects={"policy_kwargs": {"critic_activation_fn": th.nn.ReLU}})
+    assert isinstance(relu_only.policy.value_net.chi_norm, th.nn.Identity)
 
 
 def test_logs_that_show_whether_the_critic_tells_policies_apart(csv_logger):

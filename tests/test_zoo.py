@@ -205,7 +205,10 @@ def test_optuna_example_keeps_the_entrys_envs_and_normalization(tmp_path, monkey
     monkeypatch.setattr(sys, "argv", [sys.argv[0]])
     monkeypatch.chdir(tmp_path)
     example.main(["--env", "Acrobot-v1", "--tiny", "--seed", "0", "--out", str(tmp_path)])
-    study = optuna.load_study(study_name="ppo_pevfa", storage=example.storage_of(str(tmp_path / "study.log")))
+    study = optuna.load_study(  # the example's default storage and study name
+        study_name="ppo_pevfa-Acrobot-v1",
+        storage=optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(tmp_path / "study.log"))),
+    )
     assert seen == [(16, "VecNormalize", trial.params["representation"]) for trial in study.trials]
 
 

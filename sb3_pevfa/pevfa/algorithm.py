@@ -34,7 +34,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import fast_path
-from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments
+from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments, with_saved_critic
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
 from sb3_pevfa.pevfa.history import PolicyHistory
@@ -89,6 +89,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                     f"as rollout_buffer_class, got {self.rollout_buffer_class.__name__}"
                 )
             self.rollout_buffer_kwargs = {**self.rollout_buffer_kwargs, "value_target_lambda": self.value_target_lambda}
+        # a fresh model spells its critic out (pevfa_policy_kwargs); a loaded one without it is of the earlier stream
+        self.policy_kwargs = with_saved_critic(self.policy_kwargs)
         rollout_size = self.n_steps * self.n_envs
         if self.history_train_freq > 0 and self.history_buffer_size <= rollout_size:
             raise ValueError(
@@ -502,17 +504,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have
         """
-        try:
-            model = super().load(path, *args, **kwargs)
-        except RuntimeError as error:
-            if "value_net.chi_norm" not in str(error):
-                raise
-            raise ValueError(
-                f"{path} was saved with another critic embedding stream than this version's default (ReLU over a "
-                "layer-normalised chi): a model saved before 0.1.0's change loads with "
-                "custom_objects={'policy_kwargs': {'critic_activation_fn': None, 'chi_normalization': 'none', ...}} "
-                f"(plus its own policy_kwargs). {error}"
-            ) from error
+        model = super().load(path, *args, **kwargs)
         history = checkpoint_history(path) if isinstance(path, (str, pathlib.Path)) else None
         if history is not None:  # a checkpoint of CheckpointCallback: its history was saved beside it
             try:
