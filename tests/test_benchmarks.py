@@ -137,3 +137,9 @@ def test_training_logs_parse_sb3s_own_tables():
     np.testing.assert_array_equal(logs["pevfa/value_chi_gradient"], [1e-3, np.nan, np.nan])
     grid = np.array([2048.0, 3072.0, 4096.0])
     np.testing.assert_allclose(training_logs.interpolated(grid, logs, "train/explained_variance"), [0.5, 0.125, -0.25])
+
+
+def test_normalize_memory_benchmark_shows_the_chunks_bound():
+    out = _run(str(ROOT / "benchmarks" / "normalize_memory.py"), "--samples", "100000", "--obs-dim", "16", cwd=ROOT)
+    peaks = [float(line.split("peak ")[1].split(" MiB")[0]) for line in out.splitlines()]
+    assert len(peaks) == 2 and peaks[1] < peaks[0] / 3  # 16384-row chunks against the whole history at once
