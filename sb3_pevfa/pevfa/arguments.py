@@ -6,8 +6,8 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from torch import nn
 
+from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, EARLIER_CRITIC
 from sb3_pevfa.pevfa.representations import REPRESENTATIONS
 
 #: Valid values of ``update_order``.
@@ -44,16 +44,10 @@ _POLICY_ARGUMENTS = PEVFA_ARGUMENTS[:6]
 _SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
 
-#: The critic's embedding stream of today (ReLU over a layer-normalised chi), written into every new model's
-#: ``policy_kwargs`` so that it is saved with the model
-CRITIC_DEFAULTS = {"critic_activation_fn": nn.ReLU, "chi_normalization": "layernorm"}
-#: The stream of models saved before those keys were written: the actor's activation over chi as it is
-EARLIER_CRITIC = {"critic_activation_fn": None, "chi_normalization": "none"}
-
-
 def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
     """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice), and the critic's
-    embedding stream spelled out (:data:`CRITIC_DEFAULTS` where not given)."""
+    embedding stream spelled out (:data:`~sb3_pevfa.pevfa.critics.CRITIC_DEFAULTS` where not given), so that it is
+    saved with the model."""
     ours = {name: arguments[name] for name in _POLICY_ARGUMENTS}
     policy_kwargs = dict(policy_kwargs or {})
     clash = sorted(set(policy_kwargs) & set(ours))
@@ -64,7 +58,7 @@ def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[st
 
 def with_saved_critic(policy_kwargs: dict[str, Any]) -> dict[str, Any]:
     """The ``policy_kwargs`` of a loaded model: one saved without the critic's keys (before 0.1.0 wrote them)
-    has the earlier stream (:data:`EARLIER_CRITIC`), whatever the default is today."""
+    has the earlier stream (:data:`~sb3_pevfa.pevfa.critics.EARLIER_CRITIC`), whatever the default is today."""
     return {**EARLIER_CRITIC, **policy_kwargs}
 
 

@@ -9,6 +9,10 @@ from torch import nn
 CRITIC_COMBINES = ("concat", "product")
 #: Valid values of ``chi_normalization``: chi as the representation gives it, or layer-normalised (bounded scale)
 CHI_NORMALIZATIONS = ("none", "layernorm")
+#: The critic's embedding stream by default: ReLU (the paper's) over a layer-normalised chi (not in the paper)
+CRITIC_DEFAULTS = {"critic_activation_fn": nn.ReLU, "chi_normalization": "layernorm"}
+#: The stream of models saved before 0.1.0 wrote it into ``policy_kwargs``: the actor's activation over chi as it is
+EARLIER_CRITIC = {"critic_activation_fn": None, "chi_normalization": "none"}
 #: An embedding-stream unit whose activation has a slope below this at the behaviour chi counts as saturated
 SATURATION_SLOPE = 0.1
 

@@ -15,7 +15,7 @@ from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_pevfa.pevfa.critics import PeVFAValueHead
+from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, PeVFAValueHead
 from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, state_dim
 from sb3_pevfa.pevfa.representations import PolicyRepresentation, make_representation
@@ -82,8 +82,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
         critic_head_arch: list[int] | tuple[int, ...] = (128,),
         critic_combine: str = "concat",
-        critic_activation_fn: type[nn.Module] | None = nn.ReLU,
-        chi_normalization: str = "layernorm",
+        critic_activation_fn: type[nn.Module] | None = CRITIC_DEFAULTS["critic_activation_fn"],
+        chi_normalization: str = CRITIC_DEFAULTS["chi_normalization"],
         representation_objectives: tuple[str, ...] | list[str] = (),
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
         **kwargs: Any,
