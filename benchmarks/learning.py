@@ -68,6 +68,8 @@ VARIANTS: dict[str, dict | None] = {
     # targets of the historical samples: recomputed with the current critic, or the paper's Monte-Carlo returns
     "pevfa-opr-recomputed": dict(history_targets="recomputed"),
     "pevfa-opr-mc": dict(value_target_lambda=1.0),
+    # under VecNormalize: the history as its rollouts saw it (before the history was re-expressed in today's statistics)
+    "pevfa-opr-stale-normalization": dict(history_normalization="rollout"),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }

@@ -90,6 +90,25 @@ def test_vectorized_and_normalized_envs(representation):
         np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
 
 
+def test_history_normalization_rollout_keeps_what_the_rollout_saw():
+    """``history_normalization="rollout"`` (the ablation of the behaviour before 0.1.0): under VecNormalize the
+    history keeps the normalised observations and targets of each rollout, which moved statistics leave as they were."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, history_normalization="rollout", **{**FAST, "n_steps": 32}).learn(128)
+    history, buffer = model.history, model.rollout_buffer
+    assert not history.renormalize and history.normalizer is None
+    obs, targets, _ = history.samples()
+    seen = buffer.observations.reshape(2, 32, 3).swapaxes(0, 1).reshape(-1, 3)  # env-major after PPO
+    np.testing.assert_array_equal(obs[-64:], seen)
+    np.testing.assert_array_equal(targets[-64:], buffer.returns.reshape(2, 32).T.reshape(-1))
+    env.obs_rms.mean += 0.5
+    env.ret_rms.var *= 4.0
+    for got, want in zip(history.samples(), (obs, targets)):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match=r"history_normalization 'today', valid choices: \('current', 'rollout'\)"):
+        PPOPeVFA("MlpPolicy", env, history_normalization="today")
+
+
 def test_the_first_raw_observation_of_a_run_under_vec_normalize():
     """The raw observation that the first action of a run (after learn's env reset) is taken at is the one the
     history keeps: with frozen, non-trivial statistics, the history's first rollout reads back as the buffer."""

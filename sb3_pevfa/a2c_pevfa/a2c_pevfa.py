@@ -74,6 +74,7 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
+        history_normalization: str = "current",
         rollout_encoder_gradient: bool = True,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,

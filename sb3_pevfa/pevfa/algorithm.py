@@ -30,7 +30,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import fast_path
@@ -119,7 +119,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
     def _make_history(self) -> None:
         """A new, empty history (and its recorder); under SB3's ``VecNormalize`` it keeps raw observations and hands
         them out in today's statistics (:mod:`~sb3_pevfa.pevfa.normalization`)."""
-        vec_normalize = find_vec_normalize(self.env, self.observation_space)
+        vec_normalize = self._history_normalizer(self.env)
         renormalize = vec_normalize is not None
         self.history = PolicyHistory(
             self.observation_space,
@@ -140,11 +140,18 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._raw_rollout: RolloutRecorder | None = None
         self._last_raw_obs: np.ndarray | dict | None = None  # raw of _last_obs (renormalize)
 
+    def _history_normalizer(self, env: VecEnv | None) -> VecNormalize | None:
+        """The ``VecNormalize`` whose statistics the history reads its samples in; None where it keeps them as the
+        rollout saw them (no re-expressible ``VecNormalize``, or ``history_normalization="rollout"``)."""
+        if self.history_normalization == "rollout":
+            return None
+        return find_vec_normalize(env, self.observation_space)
+
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; the history follows the new env's ``VecNormalize`` (a ``VecNormalize.load`` of the same
         run: its statistics). A history of raw observations cannot go to an env without one, nor the other way."""
         wrapped = self._wrap_env(env, self.verbose) if isinstance(env, VecEnv) else None  # as SB3 will wrap it
-        vec_normalize = find_vec_normalize(wrapped, self.observation_space)
+        vec_normalize = self._history_normalizer(wrapped)
         renormalize = vec_normalize is not None
         if renormalize != self.history.renormalize and self.history.n_policies:  # checked before anything changes
             raise ValueError(

@@ -14,6 +14,9 @@ from sb3_pevfa.pevfa.representations import REPRESENTATIONS
 UPDATE_ORDERS = ("joint", "critic_first")
 #: Valid values of ``history_targets``: the rollout's value targets, or lambda-returns recomputed with the current critic
 HISTORY_TARGETS = ("rollout", "recomputed")
+#: Valid values of ``history_normalization``: under ``VecNormalize``, the history in today's statistics, or as its
+#: rollout saw it (stale once the statistics move; what PeVFA did before 0.1.0, kept as an ablation)
+HISTORY_NORMALIZATIONS = ("current", "rollout")
 #: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
 PEVFA_ARGUMENTS = (
     "representation",
@@ -33,6 +36,7 @@ PEVFA_ARGUMENTS = (
     "history_learning_starts",
     "history_targets",
     "history_target_refresh",
+    "history_normalization",
     "rollout_encoder_gradient",
     "fast_path",
 )
@@ -92,6 +96,11 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
         raise ValueError(f"Unknown update_order {update_order!r}, valid choices: {UPDATE_ORDERS}")
     if arguments["history_targets"] not in HISTORY_TARGETS:
         raise ValueError(f"Unknown history_targets {arguments['history_targets']!r}, valid choices: {HISTORY_TARGETS}")
+    if arguments["history_normalization"] not in HISTORY_NORMALIZATIONS:
+        raise ValueError(
+            f"Unknown history_normalization {arguments['history_normalization']!r}, "
+            f"valid choices: {HISTORY_NORMALIZATIONS}"
+        )
     positive = {
         name: arguments[name]
         for name in ("embedding_dim", "history_buffer_size", "history_max_policies", "history_target_refresh")

@@ -60,6 +60,9 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         once with the critic of that moment) or ``"recomputed"``: lambda-returns (lambda of the value targets)
         recomputed with the current critic at the chi of each sample's own policy
     :param history_target_refresh: Iterations between two recomputations of the historical targets
+    :param history_normalization: Under SB3's ``VecNormalize``: ``"current"`` keeps raw observations and each
+        target's reward scale and reads them in today's statistics (docs/history.md); ``"rollout"``: as the rollout
+        saw them, stale once the statistics move (the behaviour before 0.1.0, an ablation). No effect without one
     :param rollout_encoder_gradient: The value loss on the rollout also trains the encoder (chi of the behaviour
         policy recomputed with gradient per minibatch, as the paper's E2E); False: that chi is computed once per
         update without gradient, and the encoder learns from the historical updates and the objectives; None
@@ -116,6 +119,7 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
+        history_normalization: str = "current",
         rollout_encoder_gradient: bool | None = None,
         fast_path: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
