@@ -98,8 +98,7 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
         raise ValueError(f"Unknown history_targets {arguments['history_targets']!r}, valid choices: {HISTORY_TARGETS}")
     if arguments["history_normalization"] not in HISTORY_NORMALIZATIONS:
         raise ValueError(
-            f"Unknown history_normalization {arguments['history_normalization']!r}, "
-            f"valid choices: {HISTORY_NORMALIZATIONS}"
+            f"Unknown history_normalization {arguments['history_normalization']!r}, valid choices: {HISTORY_NORMALIZATIONS}"
         )
     positive = {
         name: arguments[name]
