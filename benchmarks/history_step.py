@@ -22,10 +22,10 @@ from sb3_pevfa import PPOPeVFA
 SETTINGS = [(64, None), (64, 8), (256, None), (256, 8), (256, 4), (512, 8)]
 
 
-def history_model(env_id: str, arch: list[int], n_policies: int) -> PPOPeVFA:
-    """A model whose history holds ``n_policies`` distinct records of 2048 samples each."""
+def history_model(env_id: str, arch: list[int], n_policies: int, **kwargs) -> PPOPeVFA:
+    """A model (PPOPeVFA's ``kwargs``) whose history holds ``n_policies`` distinct records of 2048 samples each."""
     policy_kwargs = dict(net_arch=dict(pi=arch, vf=arch))
-    model = PPOPeVFA("MlpPolicy", env_id, seed=0, policy_kwargs=policy_kwargs)
+    model = PPOPeVFA("MlpPolicy", env_id, seed=0, policy_kwargs=policy_kwargs, **kwargs)
     model._last_obs = model.env.reset()
     rng = np.random.default_rng(0)
     obs_shape = model.observation_space.shape

@@ -100,6 +100,18 @@ def test_history_step_benchmark_times_every_setting(tmp_path):
     assert all(float(ms) > 0 for _, ms in rows)
 
 
+def test_objective_step_benchmark_times_every_batch(tmp_path):
+    stdout = _run(
+        str(ROOT / "benchmarks" / "objective_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
+        "--steps", "2", cwd=tmp_path,
+    )  # fmt: skip
+    rows = [line.split("|")[1:5] for line in stdout.splitlines()[2:] if line.startswith("| ")]  # below the header
+    assert [label.strip() for label, *_ in rows] == ["32 policies", "64 policies", "128 policies"]
+    for _, ms, every_10, every_40 in rows:  # a rollout's cost at the paper's cadence is 4x that at every 40 steps
+        assert float(ms) > 0 and abs(float(every_10) - 2048 / 10 * float(ms)) <= 1
+        assert abs(float(every_40) - 2048 / 40 * float(ms)) <= 1
+
+
 def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import aggregate

@@ -6,6 +6,7 @@ from conftest import FAST, actor_parameters, module_parameters, read_progress
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
 from sb3_pevfa.pevfa.objectives import ActionPredictionObjective, ContrastiveObjective, make_objective
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy
 from sb3_pevfa.pevfa.representations import make_representation
@@ -168,6 +169,26 @@ def test_objectives_in_training(env_id, representation, objectives, csv_logger):
         assert {len(metrics["cl_loss"]), len(metrics["cl_accuracy"])} == {4}
     if "aux" in objectives:
         assert len(metrics["aux_nll"]) == 4 and np.isfinite(float(last["pevfa/aux_nll"]))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "cl_kwargs", "train_freq", "steps"),
+    [
+        # credit of 64 env steps per iteration; the first iteration has one recorded policy: nothing to contrast
+        ({}, {}, 40, 2 + 1),  # PPOPeVFA's historical cadence (40): 88 // 40, then 72 // 40
+        (PAPER_SCHEDULE, {}, 10, 6 + 7),  # the paper's schedule: the paper's 10 (68 // 10, then 72 // 10)
+        ({"history_train_freq": 0}, {}, 10, 6 + 7),  # no historical updates: the paper's 10
+        ({}, {"train_freq": 16}, 16, 4 + 4),  # its own
+    ],
+)
+def test_the_contrastive_objective_follows_the_historical_updates_cadence(kwargs, cl_kwargs, train_freq, steps):
+    """CL's ``train_freq=None`` (default) steps on the cadence of the historical critic updates."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation_objectives=("cl",),
+                     objective_kwargs={"cl": {"learning_starts": 0, **cl_kwargs}},
+                     **{**FAST, "history_train_freq": 40, **kwargs})  # fmt: skip
+    assert model.objective_train_freq(model.policy.objectives["cl"]) == train_freq
+    model.learn(64 * 3)
+    assert {int(state["step"]) for state in model.policy.cl_optimizer.state.values()} == {steps}
 
 
 def test_save_load_with_both_objectives(tmp_path):

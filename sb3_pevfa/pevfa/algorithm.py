@@ -39,6 +39,7 @@ from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, 
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
+from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, RepresentationObjective
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -318,7 +319,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             if self.num_timesteps < objective.learning_starts:
                 continue
             credit = self._objective_credit.get(name, 0) + self.n_steps * self.n_envs
-            n_updates, self._objective_credit[name] = divmod(credit, objective.train_freq)
+            n_updates, self._objective_credit[name] = divmod(credit, self.objective_train_freq(objective))
             optimizer = getattr(self.policy, f"{name}_optimizer")
             metrics[f"{name}_updates"] = []
             for _ in range(n_updates):
@@ -338,6 +339,11 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 metrics[f"{name}_updates"].append(1.0)
             optimizer.zero_grad()  # no stale gradient of the objective's own modules in the next update's clip norm
         return metrics
+
+    def objective_train_freq(self, objective: RepresentationObjective) -> int:
+        """Environment steps per step of ``objective``: its own ``train_freq``, else ``history_train_freq`` (the
+        historical critic updates' cadence), else the paper's 10."""
+        return objective.train_freq or self.history_train_freq or PAPER_TRAIN_FREQ
 
     def _rollout_critic_schedule(self) -> tuple[int, int]:
         """Epochs and minibatch size of the critic's steps on the rollout in the ``critic_first`` order."""

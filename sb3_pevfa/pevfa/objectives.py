@@ -22,21 +22,27 @@ from sb3_pevfa.pevfa.representations import (
 
 #: Valid entries of ``representation_objectives``.
 OBJECTIVES = ("cl", "aux")
+#: The paper's environment steps per objective step (App. F.1)
+PAPER_TRAIN_FREQ = 10
 
 
 class RepresentationObjective(nn.Module):
     """An extra loss on the encoder, trained every ``train_freq`` environment steps after ``learning_starts`` steps
-    on ``batch_policies`` policies drawn from the history, by its own optimizer (``learning_rate``)."""
+    on ``batch_policies`` policies drawn from the history, by its own optimizer (``learning_rate``). ``train_freq``
+    None: on the cadence of the algorithm's historical critic updates (``history_train_freq``; the paper's 10 where
+    they are off)."""
 
     name: str
 
-    def __init__(self, train_freq: int, learning_starts: int, batch_policies: int, learning_rate: float):
+    def __init__(self, train_freq: int | None, learning_starts: int, batch_policies: int, learning_rate: float):
         super().__init__()
         for key, value, minimum in (
             ("train_freq", train_freq, 1),
             ("learning_starts", learning_starts, 0),
             ("batch_policies", batch_policies, 2),  # a contrast needs negatives; AUX trains on a batch of policies
         ):
+            if key == "train_freq" and value is None:
+                continue
             if not isinstance(value, int) or value < minimum:
                 raise ValueError(f"{self.name} {key} must be an int >= {minimum}, got {value!r}")
         if not learning_rate > 0:
@@ -63,6 +69,9 @@ class ContrastiveObjective(RepresentationObjective):
     random ``noise_ratio`` of the parameters with Gaussian noise (``noise_std``); SPR keeps a random
     ``sample_ratio`` of the state-action pairs.
 
+    :param train_freq: Environment steps per step of this objective; None (default): those of the historical critic
+        updates (``history_train_freq``: PPOPeVFA 40, A2CPeVFA and ``PAPER_SCHEDULE`` the paper's 10), 10 where
+        they are off
     :param momentum: EMA rate of the key encoder (paper: 0.01)
     """
 
@@ -71,7 +80,7 @@ class ContrastiveObjective(RepresentationObjective):
     def __init__(
         self,
         representation: PolicyRepresentation,
-        train_freq: int = 10,
+        train_freq: int | None = None,
         learning_starts: int = 5_000,
         batch_policies: int = 32,
         learning_rate: float | None = None,
