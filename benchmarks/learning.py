@@ -49,7 +49,9 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr": {},
     "pevfa-spr": dict(representation="spr"),
     "pevfa-opr-critic-first": dict(update_order="critic_first"),
+    # CL on the historical updates' cadence (the default since CL's train_freq=None; every 10 env steps before)
     "pevfa-opr-cl": dict(representation_objectives=("cl",)),
+    "pevfa-opr-cl-paper-cadence": dict(representation_objectives=("cl",), objective_kwargs={"cl": {"train_freq": 10}}),
     "pevfa-spr-aux": dict(representation="spr", representation_objectives=("aux",)),
     "pevfa-opr-paper": dict(
         update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3, **PAPER_SCHEDULE

@@ -107,9 +107,9 @@ def test_objective_step_benchmark_times_every_batch(tmp_path):
     )  # fmt: skip
     rows = [line.split("|")[1:5] for line in stdout.splitlines()[2:] if line.startswith("| ")]  # below the header
     assert [label.strip() for label, *_ in rows] == ["32 policies", "64 policies", "128 policies"]
-    for _, ms, every_10, every_40 in rows:  # a rollout's cost at the paper's cadence is 4x that at every 40 steps
-        assert float(ms) > 0 and abs(float(every_10) - 2048 / 10 * float(ms)) <= 1
-        assert abs(float(every_40) - 2048 / 40 * float(ms)) <= 1
+    for _, ms, every_10, every_40 in rows:  # ms per step x steps per rollout (ms printed to 0.01, the rest to 1)
+        assert float(ms) > 0 and abs(float(every_10) - 2048 / 10 * float(ms)) <= 0.5 + 2048 / 10 * 0.005
+        assert abs(float(every_40) - 2048 / 40 * float(ms)) <= 0.5 + 2048 / 40 * 0.005
 
 
 def test_aggregate_iqm_bootstrap_and_profiles_by_hand():

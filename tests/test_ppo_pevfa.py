@@ -90,7 +90,7 @@ def test_vectorized_and_normalized_envs(representation):
         np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
 
 
-def test_history_normalization_rollout_keeps_what_the_rollout_saw():
+def test_history_normalization_rollout_keeps_what_the_rollout_saw(tmp_path):
     """``history_normalization="rollout"`` (the ablation of the behaviour before 0.1.0): under VecNormalize the
     history keeps the normalised observations and targets of each rollout, which moved statistics leave as they were."""
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
@@ -105,6 +105,19 @@ def test_history_normalization_rollout_keeps_what_the_rollout_saw():
     env.ret_rms.var *= 4.0
     for got, want in zip(history.samples(), (obs, targets)):
         np.testing.assert_array_equal(got, want)
+    model.set_env(env)  # the same mode: the history stays
+    assert model.history is history and history.normalizer is None
+    # saved and loaded, the option and its history come back together
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
+    loaded = PPOPeVFA.load(tmp_path / "model", env=env)
+    assert loaded.history_normalization == "rollout"
+    loaded.load_history(tmp_path / "history")
+    for got, want in zip(loaded.history.samples(), (obs, targets)):
+        np.testing.assert_array_equal(got, want)
+    current = PPOPeVFA.load(tmp_path / "model", env=env, history_normalization="current")
+    with pytest.raises(ValueError, match=r"renormalize: file has False.*history_normalization='rollout'"):
+        current.load_history(tmp_path / "history")
     with pytest.raises(ValueError, match=r"history_normalization 'today', valid choices: \('current', 'rollout'\)"):
         PPOPeVFA("MlpPolicy", env, history_normalization="today")
 

@@ -676,7 +676,13 @@ class PolicyHistory:
                     f"{key}: file has {found_signature.get(key, _SIGNATURE_DEFAULTS.get(key))!r}, model expects {wanted!r}"
                     for key, (_, wanted) in mismatches.items()
                 )
-                raise ValueError(f"History file {path} does not match this model ({details})")
+                hint = ""
+                if "renormalize" in mismatches and not found_signature.get("renormalize", False):
+                    hint = (
+                        "; a history recorded as its rollouts saw a VecNormalize env loads into a model built or "
+                        "loaded with history_normalization='rollout'"
+                    )
+                raise ValueError(f"History file {path} does not match this model ({details}){hint}")
             arrays = {name: archive[name] for name in archive.files if name != "meta"}
         prefix, info_key = ("policy", "policy_info") if version == 1 else ("record", "record_info")
         loaded = copy.copy(self)  # same spaces and bounds, its own storage: this history stays intact until the end

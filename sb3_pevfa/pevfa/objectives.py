@@ -158,7 +158,7 @@ class ActionPredictionObjective(RepresentationObjective):
         representation: PolicyRepresentation,
         observation_space: spaces.Space,
         action_space: spaces.Space,
-        train_freq: int = 10,
+        train_freq: int | None = 10,
         learning_starts: int = 5_000,
         batch_policies: int = 16,
         learning_rate: float = 1e-3,

@@ -54,7 +54,8 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param history_batch_policies: Policies per historical batch: ``history_batch_size / history_batch_policies``
         samples of each, policies drawn in proportion to their sample counts (the same expected loss as uniform
         samples, at most this many policies to encode per batch); None: uniform samples (the paper's)
-    :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them
+    :param history_train_freq: Environment steps per historical critic update (paper: 10); 0 disables them. Also
+        the cadence of the CL objective unless its ``train_freq`` is given (the paper's 10 where this is 0)
     :param history_learning_starts: Environment steps before historical updates start (paper: 5k)
     :param history_targets: Value targets of the historical samples: ``"rollout"`` (the rollout's returns, computed
         once with the critic of that moment) or ``"recomputed"``: lambda-returns (lambda of the value targets)

@@ -85,7 +85,8 @@ def _sample_pevfa_params(trial: optuna.Trial, small: bool, rollout_size: int) ->
     low, high = (10, 12) if small else (14, 19)
     low = min(max(low, math.floor(math.log2(rollout_size)) + 1), high)  # 2**low > one rollout
     sampled["history_buffer_size_pow"] = trial.suggest_int("history_buffer_size_pow", low, high)
-    # 1.6 to 12.8 historical samples per env step with the default 256-sample batches (the paper: 6.4)
+    # 1.6 to 12.8 historical samples per env step with the default 256-sample batches (the paper: 6.4); the CL
+    # objective steps on the same cadence (its train_freq=None)
     sampled["history_train_freq"] = trial.suggest_categorical("history_train_freq", [20, 40, 80, 160])
     sampled["critic_learning_rate"] = trial.suggest_float("critic_learning_rate", 1e-5, 3e-3, log=True)
     return convert_pevfa_params(sampled)
