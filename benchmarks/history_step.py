@@ -12,6 +12,7 @@ steady state). Per env step, a setting costs ``ms per update / history_train_fre
 
 import argparse
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch as th
@@ -40,25 +41,40 @@ def history_model(env_id: str, arch: list[int], n_policies: int, **kwargs) -> PP
     return model
 
 
-def time_updates(model: PPOPeVFA, batch_size: int, batch_policies: int | None, steps: int) -> float:
-    """CPU milliseconds per historical update."""
-    model.history_batch_size, model.history_batch_policies = batch_size, batch_policies
+def cpu_ms_per_step(model: PPOPeVFA, run: Callable[[int], int], steps: int) -> float:
+    """CPU milliseconds per step of ``run(n)`` (takes exactly ``n`` steps, returns how many it took), timed over
+    ``steps`` after 5 untimed ones."""
     model.policy.set_training_mode(True)
     for n in (5, steps):
-        model._history_credit = n * model.history_train_freq - model.n_steps * model.n_envs  # exactly n updates
         start = time.process_time()
-        assert len(model._train_on_history()) == n
+        assert run(n) == n
     return (time.process_time() - start) / steps * 1e3
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def time_updates(model: PPOPeVFA, batch_size: int, batch_policies: int | None, steps: int) -> float:
+    """CPU milliseconds per historical update."""
+    model.history_batch_size, model.history_batch_policies = batch_size, batch_policies
+
+    def run(n: int) -> int:
+        model._history_credit = n * model.history_train_freq - model.n_steps * model.n_envs  # exactly n updates
+        return len(model._train_on_history())
+
+    return cpu_ms_per_step(model, run, steps)
+
+
+def parse_arguments(doc: str, policies: int, policies_help: str) -> argparse.Namespace:
+    """The step benchmarks' command line (``--env``, ``--arch``, ``--policies``, ``--steps``); one torch thread."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--arch", nargs="+", type=int, default=[64, 64], help="actor (and state stream) layers")
-    parser.add_argument("--policies", type=int, default=98, help="policies in the history (200k samples: ~98)")
+    parser.add_argument("--policies", type=int, default=policies, help=policies_help)
     parser.add_argument("--steps", type=int, default=100)
-    args = parser.parse_args()
     th.set_num_threads(1)
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = parse_arguments(__doc__, 98, "policies in the history (200k samples: ~98)")
     model = history_model(args.env, args.arch, args.policies)
     print(f"| {args.env}, actor {args.arch}, {args.policies} policies | ms per update | us per sample |")
     print("|---|---|---|")

@@ -9,11 +9,7 @@ and PPOPeVFA's default (its historical updates' 40) are tabulated.
     python benchmarks/objective_step.py --env Hopper-v5
 """
 
-import argparse
-import time
-
-import torch as th
-from history_step import history_model
+from history_step import cpu_ms_per_step, history_model, parse_arguments
 
 from sb3_pevfa import PPOPeVFA
 
@@ -28,22 +24,16 @@ def time_steps(model: PPOPeVFA, batch_policies: int, steps: int) -> float:
     objective = model.policy.objectives["cl"]
     objective.batch_policies = batch_policies
     train_freq = model.objective_train_freq(objective)
-    model.policy.set_training_mode(True)
-    for n in (5, steps):
+
+    def run(n: int) -> int:
         model._objective_credit["cl"] = n * train_freq - model.n_steps * model.n_envs  # exactly n steps
-        start = time.process_time()
-        assert len(model._train_objectives()["cl_updates"]) == n
-    return (time.process_time() - start) / steps * 1e3
+        return len(model._train_objectives()["cl_updates"])
+
+    return cpu_ms_per_step(model, run, steps)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="Hopper-v5")
-    parser.add_argument("--arch", nargs="+", type=int, default=[64, 64], help="actor (and state stream) layers")
-    parser.add_argument("--policies", type=int, default=146, help="policies in the history (300k steps: ~146)")
-    parser.add_argument("--steps", type=int, default=100)
-    args = parser.parse_args()
-    th.set_num_threads(1)
+    args = parse_arguments(__doc__, 146, "policies in the history (a 300k-step run: ~146)")
     model = history_model(args.env, args.arch, args.policies, representation_objectives=("cl",),
                           objective_kwargs={"cl": {"learning_starts": 0}})  # fmt: skip
     cadences = " | ".join(f"ms per 2048 env steps, every {freq}" for freq in CADENCES)
