@@ -70,6 +70,8 @@ VARIANTS: dict[str, dict | None] = {
     # targets of the historical samples: recomputed with the current critic, or the paper's Monte-Carlo returns
     "pevfa-opr-recomputed": dict(history_targets="recomputed"),
     "pevfa-opr-mc": dict(value_target_lambda=1.0),
+    # chi without the historical updates (the encoder then learns from the rollout's value loss)
+    "pevfa-opr-no-history": dict(history_train_freq=0),
     # under VecNormalize: the history as its rollouts saw it (before the history was re-expressed in today's statistics)
     "pevfa-opr-stale-normalization": dict(history_normalization="rollout"),
     "a2c": None,
