@@ -87,6 +87,27 @@ def test_profile_benchmark_reports_both_algorithms(tmp_path):
     assert float(rows["history updates"][0]) == 0.0 < float(rows["history updates"][1])
 
 
+def test_profile_benchmark_reads_a_zoo_entry(tmp_path):
+    """``--conf``: the env's entry of an rl-zoo3 file, as the zoo builds it (VecNormalize, n_envs, policy_kwargs)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from profile_iteration import zoo_entry
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    conf = tmp_path / "conf.yml"
+    conf.write_text(
+        "CartPole-v1:\n  normalize: true\n  n_envs: 2\n  policy: MlpPolicy\n  n_timesteps: 1e4\n  n_steps: 32\n"
+        "  policy_kwargs: dict(activation_fn=nn.ReLU, net_arch=dict(pi=[8], vf=[8]))\n"
+    )
+    env, kwargs = zoo_entry(conf, "CartPole-v1")
+    assert isinstance(env, VecNormalize) and env.num_envs == 2
+    assert kwargs["n_steps"] == 32 and set(kwargs) == {"n_steps", "policy_kwargs"}
+    assert kwargs["policy_kwargs"]["net_arch"] == {"pi": [8], "vf": [8]}
+    assert zoo_entry(None, "CartPole-v1") == ("CartPole-v1", {})
+    stdout = _run(str(ROOT / "benchmarks" / "profile_iteration.py"), "--env", "CartPole-v1", "--iterations", "1",
+                  "--conf", str(conf), cwd=tmp_path)  # fmt: skip
+    assert "| CPU time (s) |" in stdout
+
+
 def test_history_step_benchmark_times_every_setting(tmp_path):
     stdout = _run(
         str(ROOT / "benchmarks" / "history_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
