@@ -238,16 +238,23 @@ def task_scores(results: dict[str, dict[str, list[dict]]], baseline: str) -> dic
     max average return (per step) and the best-so-far return at the baseline's mean wall-clock time (per second)."""
     tasks = {env_id: variants for env_id, variants in results.items() if baseline in variants}
     common = set.intersection(*(set(variants) for variants in tasks.values())) if tasks else set()
-    views: dict[str, dict[str, dict]] = {"max average return (per step)": {}, "best-so-far at the baseline's time": {}}
+    views: dict[str, dict[str, dict]] = {
+        "max average return (per step)": {},
+        "best-so-far at the baseline's time": {},
+        "best-so-far at the baseline's CPU time": {},
+    }
     for env_id, variants in tasks.items():
-        budget = float(np.mean([r["curve"][-1].get("wall_s", np.inf) for r in variants[baseline]]))
+        budget = budgets(variants[baseline])
         for variant in common:
             runs = variants[variant]
             views["max average return (per step)"].setdefault(variant, {})[env_id] = scores(runs)["max"]
             if "wall_s" in runs[0]["curve"][0]:
-                best = np.array([best_so_far_at(r, budget) for r in runs])
+                best = np.array([best_so_far_at(r, budget["wall"]) for r in runs])
                 views["best-so-far at the baseline's time"].setdefault(variant, {})[env_id] = best
-    return views
+            if all("cpu_time_s" in r for r in runs + variants[baseline]):
+                best = np.array([best_so_far_at(r, budget["cpu"], "cpu") for r in runs])
+                views["best-so-far at the baseline's CPU time"].setdefault(variant, {})[env_id] = best
+    return {view: variants for view, variants in views.items() if variants or view.endswith("(per step)")}
 
 
 def aggregate_table(results: dict[str, dict[str, list[dict]]], baseline: str) -> list[str]:
@@ -299,10 +306,27 @@ def plot_profiles(out: pathlib.Path, png: pathlib.Path, baseline: str) -> None:
     fig.savefig(png, dpi=100)
 
 
-def best_so_far_at(run: dict, seconds: float) -> float:
-    """The best evaluation of ``run`` made within ``seconds`` of its start (wall-clock; -inf if none)."""
-    returns = [c["mean_return"] for c in run["curve"] if c["wall_s"] <= seconds]
+def cpu_seconds(run: dict, point: dict) -> float:
+    """The training process's CPU seconds at evaluation ``point``: the run's CPU time prorated by its steps (only the
+    whole run's is recorded; a run's CPU per step is about constant, the history's cost being bounded from its first
+    5k steps)."""
+    return run["cpu_time_s"] * point["timesteps"] / run["timesteps"]
+
+
+def best_so_far_at(run: dict, seconds: float, clock: str = "wall") -> float:
+    """The best evaluation of ``run`` made within ``seconds`` of its start (``clock``: ``"wall"``-clock or ``"cpu"``
+    seconds of the training process; -inf if none)."""
+    at = (lambda c: c["wall_s"]) if clock == "wall" else (lambda c: cpu_seconds(run, c))
+    returns = [c["mean_return"] for c in run["curve"] if at(c) <= seconds]
     return max(returns) if returns else float("-inf")
+
+
+def budgets(baseline_runs: list[dict]) -> dict[str, float]:
+    """The baseline's mean wall-clock and CPU seconds of a whole run."""
+    return {
+        "wall": float(np.mean([r["curve"][-1].get("wall_s", np.inf) for r in baseline_runs])),
+        "cpu": float(np.mean([r.get("cpu_time_s", np.inf) for r in baseline_runs])),
+    }
 
 
 def per_second(variants: dict[str, list[dict]], baseline: str) -> list[str]:
@@ -310,24 +334,28 @@ def per_second(variants: dict[str, list[dict]], baseline: str) -> list[str]:
     best-so-far return at the baseline's own mean wall-clock time of a whole run."""
     if baseline not in variants or "wall_s" not in variants[baseline][0]["curve"][0]:
         return []
-    budget = float(np.mean([r["curve"][-1]["wall_s"] for r in variants[baseline]]))
+    budget = budgets(variants[baseline])
     base_speed = np.mean([r["timesteps"] / r["wall_time_s"] for r in variants[baseline]])
+    has_cpu = all("cpu_time_s" in r for runs in variants.values() for r in runs)
+    base_cpu = np.mean([r["timesteps"] / r["cpu_time_s"] for r in variants[baseline]]) if has_cpu else np.nan
     lines = [
-        f"Per second (wall-clock budget: {baseline}'s mean run, {budget:.0f} s):",
+        f"Per second (budgets: {baseline}'s mean run, {budget['wall']:.0f} s wall-clock"
+        + (f", {budget['cpu']:.0f} CPU-s; an evaluation's CPU time is its run's, prorated by steps):" if has_cpu else "):"),
         "",
-        f"| variant | steps/s (wall) | steps/CPU-s | speed vs {baseline} | best-so-far at {budget:.0f} s (± ½ std) "
-        "| per seed |",
-        "|---|---|---|---|---|---|",
+        f"| variant | steps/s (wall) | steps/CPU-s | speed vs {baseline} (wall / CPU) | best-so-far at {budget['wall']:.0f} s "
+        f"(± ½ std) | per seed |" + (f" best-so-far at {budget['cpu']:.0f} CPU-s (± ½ std) | per seed |" if has_cpu else ""),
+        "|---|---|---|---|---|---|" + ("---|---|" if has_cpu else ""),
     ]
     for variant, runs in sorted(variants.items(), key=lambda item: (item[0] != baseline, item[0])):
         speed = np.array([r["timesteps"] / r["wall_time_s"] for r in runs])
-        cpu = [r["timesteps"] / r["cpu_time_s"] for r in runs if "cpu_time_s" in r]
-        best = np.array([best_so_far_at(r, budget) for r in runs])
-        lines.append(
-            f"| {variant} | {speed.mean():.0f} ± {speed.std():.0f} | {f'{np.mean(cpu):.0f}' if cpu else 'not recorded'} | "
-            f"{speed.mean() / base_speed:.2f}x | {best.mean():.0f} ± {best.std() / 2:.0f} | "
-            f"{', '.join(f'{v:.0f}' for v in best)} |"
-        )
+        cpu = np.mean([r["timesteps"] / r["cpu_time_s"] for r in runs]) if has_cpu else np.nan
+        row = f"| {variant} | {speed.mean():.0f} ± {speed.std():.0f} | "
+        row += f"{cpu:.0f} | " if has_cpu else "not recorded | "
+        row += f"{speed.mean() / base_speed:.2f}x / " + (f"{cpu / base_cpu:.2f}x | " if has_cpu else "- | ")
+        for clock in ("wall", "cpu") if has_cpu else ("wall",):
+            best = np.array([best_so_far_at(r, budget[clock], clock) for r in runs])
+            row += f"{best.mean():.0f} ± {best.std() / 2:.0f} | {', '.join(f'{v:.0f}' for v in best)} | "
+        lines.append(row.rstrip())
     return lines
 
 

@@ -36,7 +36,8 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
     assert "| ppo | 2 |" in stdout and "| pevfa-opr | 2 |" in stdout and "95 % CI" in stdout
     # per second too: each run's CPU time and each evaluation's wall-clock time
     assert ppo["cpu_time_s"] > 0 and 0 < ppo["curve"][0]["wall_s"] < ppo["curve"][1]["wall_s"] <= ppo["wall_time_s"]
-    assert "Per second (wall-clock budget: ppo's mean run" in stdout and "| pevfa-opr |" in stdout.split("Per second")[1]
+    assert "Per second (budgets: ppo's mean run" in stdout and "| pevfa-opr |" in stdout.split("Per second")[1]
+    assert "best-so-far at the baseline's CPU time" in stdout
     assert (tmp_path / "curves.png").stat().st_size > 0
     # finished runs are skipped on a second call
     again = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0",
@@ -50,6 +51,25 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
     # two evaluation tables and the final one (a single 2048-step rollout logs no update: SB3 logs it at the next)
     assert logs["InvertedPendulum-v5_pevfa-opr_seed0"]["time/total_timesteps"] == [1024, 2048, 2048]
     assert "| pevfa-opr | 2 |" in report and "| ppo | 2 |" in report and (tmp_path / "logs.png").stat().st_size > 0
+
+
+def test_best_so_far_by_wall_clock_and_by_cpu_time():
+    """An evaluation's CPU time is its run's prorated by steps: by hand on a run of 3 evaluations."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from learning import best_so_far_at, budgets, per_second
+
+    def run(returns, cpu, wall):
+        curve = [dict(timesteps=t, mean_return=r, wall_s=w) for t, r, w in zip((100, 200, 300), returns, wall)]
+        return dict(timesteps=300, cpu_time_s=cpu, wall_time_s=wall[-1], curve=curve)
+
+    ppo = run([1.0, 2.0, 3.0], cpu=30.0, wall=[10.0, 20.0, 30.0])
+    slow = run([5.0, 1.0, 9.0], cpu=60.0, wall=[5.0, 10.0, 40.0])  # CPU at its evaluations: 20, 40, 60
+    assert budgets([ppo]) == {"wall": 30.0, "cpu": 30.0}
+    assert best_so_far_at(slow, 30.0) == 5.0 and best_so_far_at(slow, 30.0, "cpu") == 5.0
+    assert best_so_far_at(slow, 40.0) == 9.0 and best_so_far_at(slow, 40.0, "cpu") == 5.0
+    assert best_so_far_at(slow, 10.0, "cpu") == float("-inf")
+    rows = [line for line in per_second({"ppo": [ppo], "slow": [slow]}, "ppo") if line.startswith("| slow")]
+    assert rows == ["| slow | 8 ± 0 | 5 | 0.75x / 0.50x | 5 ± 0 | 5 | 5 ± 0 | 5 |"]
 
 
 def test_speed_encoder_and_memory_benchmarks(tmp_path):
