@@ -360,15 +360,16 @@ def per_second(variants: dict[str, list[dict]], baseline: str) -> list[str]:
 
 
 def plot(out: pathlib.Path, png: pathlib.Path) -> None:
-    """Learning curves per task, against environment steps (top) and wall-clock seconds (bottom): mean over seeds
-    with a band of one std, every variant in its fixed colour."""
+    """Learning curves per task, against environment steps (top), wall-clock seconds and CPU seconds of the training
+    process (bottom; prorated by steps, :func:`cpu_seconds`): mean over seeds with a band of one std, every variant
+    in its fixed colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     results = load_results(out)
-    fig, axes = plt.subplots(2, len(results), figsize=(6 * len(results), 8), squeeze=False)
+    fig, axes = plt.subplots(3, len(results), figsize=(6 * len(results), 12), squeeze=False)
     palette = plt.get_cmap("tab20").colors  # more variants than the ten default colours: none shares one
     colors = {variant: palette[(2 * i) % 20 + (2 * i) // 20 % 2] for i, variant in enumerate(VARIANTS)}
     for column, (env_id, variants) in enumerate(sorted(results.items())):
@@ -376,15 +377,22 @@ def plot(out: pathlib.Path, png: pathlib.Path) -> None:
             n = min(len(r["curve"]) for r in runs)
             returns = np.array([[c["mean_return"] for c in r["curve"][:n]] for r in runs])
             mean, std = returns.mean(axis=0), returns.std(axis=0)
-            for row, key in enumerate(("timesteps", "wall_s")):
-                if key not in runs[0]["curve"][0]:
+            clocks = {
+                "timesteps": lambda r, c: c["timesteps"],
+                "wall_s": lambda r, c: c["wall_s"],
+                "cpu_time_s": lambda r, c: cpu_seconds(r, c),
+            }
+            for row, (key, at) in enumerate(clocks.items()):
+                if key not in runs[0]["curve"][0] and key not in runs[0]:
                     continue
-                x = np.mean([[c[key] for c in r["curve"][:n]] for r in runs], axis=0)  # seeds' mean time per point
+                x = np.mean([[at(r, c) for c in r["curve"][:n]] for r in runs], axis=0)  # seeds' mean time per point
                 ax = axes[row, column]
                 ax.plot(x, mean, color=colors.get(variant), label=f"{variant} ({len(runs)} seeds)")
                 ax.fill_between(x, mean - std, mean + std, color=colors.get(variant), alpha=0.2)
         axes[0, column].set(title=env_id, xlabel="environment steps", ylabel="average return (deterministic)")
         axes[1, column].set(title=env_id, xlabel="wall-clock seconds (mean over seeds)", ylabel="average return")
+        axes[2, column].set(title=env_id, xlabel="CPU seconds of the training process (mean over seeds)",
+                            ylabel="average return")  # fmt: skip
         axes[0, column].legend()
     fig.tight_layout()
     fig.savefig(png, dpi=100)
