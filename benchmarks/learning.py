@@ -19,6 +19,7 @@ and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one tor
 """
 
 import argparse
+import inspect
 import json
 import os
 import pathlib
@@ -30,6 +31,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import aggregate
 import numpy as np
+import yaml
+from stable_baselines3 import A2C, PPO
 
 from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
 
@@ -74,6 +77,10 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-no-history": dict(history_train_freq=0),
     # under VecNormalize: the history as its rollouts saw it (before the history was re-expressed in today's statistics)
     "pevfa-opr-stale-normalization": dict(history_normalization="rollout"),
+    # the critic and encoder at 10x the config's learning rate (the paper's ratio: actor 1e-4, critic 1e-3), and
+    # its control: the same critic and rate without chi and without historical updates
+    "pevfa-opr-critic-lr-x10": dict(critic_learning_rate_scale=10),
+    "pevfa-none-no-history-critic-lr-x10": dict(representation="none", history_train_freq=0, critic_learning_rate_scale=10),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
@@ -102,8 +109,24 @@ def conf_file(variant: str, args: argparse.Namespace) -> pathlib.Path:
     return args.conf or CONFS[base_algorithm(variant)]
 
 
-def zoo_command(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace, folder: pathlib.Path) -> list:
+def variant_options(variant: str, env_id: str, conf: pathlib.Path) -> dict | None:
+    """The variant's rl-zoo3 ``--hyperparams``, ``critic_learning_rate_scale`` resolved into a ``critic_learning_rate``
+    of that multiple of the config entry's constant ``learning_rate`` (the base algorithm's default if it has none)."""
     options = VARIANTS[variant]
+    if not options or "critic_learning_rate_scale" not in options:
+        return options
+    options = dict(options)
+    scale = options.pop("critic_learning_rate_scale")
+    entry = yaml.safe_load(conf.read_text())[env_id]
+    default = inspect.signature({"ppo": PPO, "a2c": A2C}[base_algorithm(variant)]).parameters["learning_rate"].default
+    learning_rate = entry.get("learning_rate", default)
+    if not isinstance(learning_rate, (int, float)):
+        raise ValueError(f"{variant} needs a constant learning_rate in {conf} for {env_id}, got {learning_rate!r}")
+    return {**options, "critic_learning_rate": float(f"{scale * learning_rate:.6g}")}
+
+
+def zoo_command(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace, folder: pathlib.Path) -> list:
+    options = variant_options(variant, env_id, conf_file(variant, args))
     base = base_algorithm(variant)
     command = [
         sys.executable, "-m", "sb3_pevfa.train",
@@ -138,7 +161,7 @@ def run(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Nam
     returns = evaluations["results"]
     result = {
         "variant": variant,
-        "options": VARIANTS[variant],
+        "options": variant_options(variant, env_id, conf),
         "env": env_id,
         "seed": seed,
         "timesteps": timesteps,

@@ -72,6 +72,22 @@ def test_best_so_far_by_wall_clock_and_by_cpu_time():
     assert rows == ["| slow | 8 ± 0 | 5 | 0.75x / 0.50x | 5 ± 0 | 5 | 5 ± 0 | 5 |"]
 
 
+def test_critic_learning_rate_variants_scale_each_entrys_rate(tmp_path):
+    """``critic_learning_rate_scale`` becomes a ``critic_learning_rate`` per task, from that task's config entry."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from learning import variant_options
+
+    conf = tmp_path / "conf.yml"
+    conf.write_text("A-v0:\n  learning_rate: 2.5e-05\nB-v0:\n  n_steps: 32\nC-v0:\n  learning_rate: lin_3e-4\n")
+    assert variant_options("pevfa-opr-critic-lr-x10", "A-v0", conf) == {"critic_learning_rate": 2.5e-04}
+    assert variant_options("pevfa-opr-critic-lr-x10", "B-v0", conf) == {"critic_learning_rate": 3e-03}  # PPO's default
+    control = variant_options("pevfa-none-no-history-critic-lr-x10", "A-v0", conf)
+    assert control == {"representation": "none", "history_train_freq": 0, "critic_learning_rate": 2.5e-04}
+    assert variant_options("pevfa-opr", "A-v0", conf) == {} and variant_options("ppo", "A-v0", conf) is None
+    with pytest.raises(ValueError, match="constant learning_rate"):
+        variant_options("pevfa-opr-critic-lr-x10", "C-v0", conf)
+
+
 def test_speed_encoder_and_memory_benchmarks(tmp_path):
     _run(str(ROOT / "benchmarks" / "speed.py"), "--env", "CartPole-v1", "--steps", "256", "--warmup", "512", "--repeats", "2",
          "--out", str(tmp_path), "--cache", str(tmp_path / "cache"), cwd=ROOT)  # fmt: skip
