@@ -115,6 +115,16 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
     assert memory[0]["mb"] < memory[1]["mb"] and memory[1]["policies"] == 4
 
 
+def test_denormals_benchmark_runs_every_variant(tmp_path):
+    out = tmp_path / "denormals.json"
+    stdout = _run(str(ROOT / "benchmarks" / "denormals.py"), "--env", "CartPole-v1", "--timesteps", "64", "--out", str(out),
+                  cwd=ROOT / "benchmarks")  # fmt: skip
+    rows = json.loads(out.read_text())
+    assert [r["variant"] for r in rows] == ["ppo", "ppo-flush-denormal", "pevfa", "pevfa-no-flush-denormal"]
+    assert all(r["timesteps"] == 64 and r["cpu_s"] > 0 and 0.0 <= r["denormal_fraction"] < 1.0 for r in rows)
+    assert "| CartPole-v1 | ppo | 1 |" in stdout and "| 1.00x |" in stdout
+
+
 def test_profile_benchmark_reports_both_algorithms(tmp_path):
     stdout = _run(str(ROOT / "benchmarks" / "profile_iteration.py"), "--env", "CartPole-v1", "--iterations", "2", cwd=tmp_path)
     rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in stdout.splitlines() if line.startswith("| ")}

@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 from sb3_pevfa import PAPER_SCHEDULE, REPRESENTATIONS, PolicyHistory, PolicyHistoryCallback, PolicyRecord, PPOPeVFA
 from sb3_pevfa.pevfa import normalization
 from sb3_pevfa.pevfa.buffers import PeVFARolloutBuffer
+from sb3_pevfa.pevfa.denormals import denormals_flushed, flush_denormals
 from sb3_pevfa.pevfa.fast_path import flat_observations
 from sb3_pevfa.pevfa.records import ActorLayout
 from sb3_pevfa.ppo_pevfa.policies import PeVFAActorCriticPolicy
@@ -88,6 +89,54 @@ def test_vectorized_and_normalized_envs(representation):
         np.testing.assert_allclose(np.hypot(raw_states[..., 0], raw_states[..., 1]), 1.0, rtol=1e-5)
         states = history.records(history.policy_ids)["states"]
         np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
+
+
+def _can_flush_denormals() -> bool:
+    flushed = th.set_flush_denormal(True)
+    th.set_flush_denormal(False)
+    return flushed
+
+
+@pytest.mark.skipif(not _can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)")
+def test_flush_denormals_restores_the_threads_setting():
+    denormal = th.tensor([1e-40])
+    assert not denormals_flushed() and (denormal * 1.0).item() > 0
+    with flush_denormals():
+        assert denormals_flushed() and (denormal * 1.0).item() == 0.0
+    assert not denormals_flushed()
+    with flush_denormals(False):
+        assert not denormals_flushed()
+    th.set_flush_denormal(True)
+    try:
+        with flush_denormals():  # a user's own setting stays on after the update
+            assert denormals_flushed()
+        assert denormals_flushed()
+    finally:
+        th.set_flush_denormal(False)
+
+
+@pytest.mark.skipif(not _can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)")
+def test_flush_denormal_clears_denormal_adam_moments_in_the_update_only(tmp_path):
+    """Denormal moments (of units without gradient) become 0 in the update; the rollout runs with IEEE arithmetic;
+    ``flush_denormal=False`` keeps them, and survives save / load."""
+    seen = []
+    for flush in (True, False):
+        model = PPOPeVFA("MlpPolicy", "Pendulum-v1", flush_denormal=flush, **FAST)
+        model.learn(64)
+        hidden, output = model.policy.value_net.hidden[0], model.policy.value_net.output
+        with th.no_grad():  # a dead ReLU unit: no gradient reaches its weights; their moments decay by 0.9 a step
+            hidden.weight[0], hidden.bias[0] = 0.0, -1.0
+        state = model.policy.optimizer.state[output.weight]
+        state["exp_avg"][0, 0] = 1e-40
+        rollout = model.collect_rollouts
+        model.collect_rollouts = lambda *a, rollout=rollout, **k: seen.append(denormals_flushed()) or rollout(*a, **k)  # type: ignore
+        model.learn(64, reset_num_timesteps=False)
+        moment = state["exp_avg"][0, 0].item()
+        assert moment == 0.0 if flush else 0.0 < moment < th.finfo(th.float32).tiny
+        assert not denormals_flushed()
+    assert seen == [False, False]
+    model.save(tmp_path / "model.zip")
+    assert PPOPeVFA.load(tmp_path / "model.zip").flush_denormal is False
 
 
 def test_history_normalization_rollout_keeps_what_the_rollout_saw(tmp_path):
@@ -674,6 +723,7 @@ def test_bad_input_errors():
         (dict(history_batch_policies=True), ValueError, "history_batch_policies"),
         (dict(rollout_encoder_gradient="yes"), TypeError, "rollout_encoder_gradient"),
         (dict(fast_path=None), TypeError, "fast_path"),
+        (dict(flush_denormal="yes"), TypeError, "flush_denormal"),
         (dict(n_state_action_pairs=-1), ValueError, "n_state_action_pairs"),
         (dict(representation="spr", n_state_action_pairs=0), ValueError, "n_state_action_pairs"),
         (dict(critic_learning_rate=-1.0), ValueError, "critic_learning_rate"),

@@ -37,6 +37,7 @@ from sb3_pevfa.pevfa import fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments, with_saved_critic
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
+from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
 from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, RepresentationObjective
@@ -380,6 +381,12 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         super().train()  # type: ignore[safe-super]
 
     def train(self) -> None:
+        """One update (see the module), float32 denormals flushed to zero unless ``flush_denormal`` is False
+        (:mod:`~sb3_pevfa.pevfa.denormals`)."""
+        with flush_denormals(self.flush_denormal):
+            self._train_pevfa()
+
+    def _train_pevfa(self) -> None:
         self.policy.behaviour_chi_gradient = self.trains_encoder_on_rollout  # an attribute changed since is honoured
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)

@@ -39,6 +39,7 @@ PEVFA_ARGUMENTS = (
     "history_normalization",
     "rollout_encoder_gradient",
     "fast_path",
+    "flush_denormal",
 )
 #: The paper's schedule of the historical critic updates (App. F.1: 64 uniform samples per 10 environment steps) and
 #: its end-to-end encoder, which PPOPeVFA's defaults trade for a cheaper one: ``PPOPeVFA(..., **PAPER_SCHEDULE)``
@@ -117,8 +118,9 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
     k = arguments["history_batch_policies"]
     if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0):
         raise ValueError(f"history_batch_policies must be None (uniform samples, the paper's) or a positive int, got {k!r}")
-    if not isinstance(arguments["fast_path"], (bool, np.bool_)):
-        raise TypeError(f"fast_path must be a bool, got {arguments['fast_path']!r}")
+    for name in ("fast_path", "flush_denormal"):
+        if not isinstance(arguments[name], (bool, np.bool_)):
+            raise TypeError(f"{name} must be a bool, got {arguments[name]!r}")
     gradient = arguments["rollout_encoder_gradient"]
     if gradient is not None and not isinstance(gradient, (bool, np.bool_)):
         raise TypeError(f"rollout_encoder_gradient must be a bool or None, got {gradient!r}")
