@@ -81,6 +81,8 @@ VARIANTS: dict[str, dict | None] = {
     # its control: the same critic and rate without chi and without historical updates
     "pevfa-opr-critic-lr-x10": dict(critic_learning_rate_scale=10),
     "pevfa-none-no-history-critic-lr-x10": dict(representation="none", history_train_freq=0, critic_learning_rate_scale=10),
+    # an embedding stream whose units cannot die (ELU: a gradient at every input), where ReLU units went flat
+    "pevfa-opr-elu": dict(policy_kwargs="dict(critic_activation_fn=nn.ELU)"),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
@@ -110,19 +112,24 @@ def conf_file(variant: str, args: argparse.Namespace) -> pathlib.Path:
 
 
 def variant_options(variant: str, env_id: str, conf: pathlib.Path) -> dict | None:
-    """The variant's rl-zoo3 ``--hyperparams``, ``critic_learning_rate_scale`` resolved into a ``critic_learning_rate``
-    of that multiple of the config entry's constant ``learning_rate`` (the base algorithm's default if it has none)."""
+    """The variant's rl-zoo3 ``--hyperparams`` for ``env_id``'s entry of ``conf``: ``critic_learning_rate_scale``
+    resolved into a ``critic_learning_rate`` of that multiple of the entry's constant ``learning_rate`` (the base
+    algorithm's default if it has none), and ``policy_kwargs`` added to the entry's own (which rl-zoo3 would replace)."""
     options = VARIANTS[variant]
-    if not options or "critic_learning_rate_scale" not in options:
+    if not options or not {"critic_learning_rate_scale", "policy_kwargs"} & set(options):
         return options
     options = dict(options)
-    scale = options.pop("critic_learning_rate_scale")
     entry = yaml.safe_load(conf.read_text())[env_id]
-    default = inspect.signature({"ppo": PPO, "a2c": A2C}[base_algorithm(variant)]).parameters["learning_rate"].default
-    learning_rate = entry.get("learning_rate", default)
-    if not isinstance(learning_rate, (int, float)):
-        raise ValueError(f"{variant} needs a constant learning_rate in {conf} for {env_id}, got {learning_rate!r}")
-    return {**options, "critic_learning_rate": float(f"{scale * learning_rate:.6g}")}
+    if "critic_learning_rate_scale" in options:
+        scale = options.pop("critic_learning_rate_scale")
+        default = inspect.signature({"ppo": PPO, "a2c": A2C}[base_algorithm(variant)]).parameters["learning_rate"].default
+        learning_rate = entry.get("learning_rate", default)
+        if not isinstance(learning_rate, (int, float)):
+            raise ValueError(f"{variant} needs a constant learning_rate in {conf} for {env_id}, got {learning_rate!r}")
+        options["critic_learning_rate"] = float(f"{scale * learning_rate:.6g}")
+    if "policy_kwargs" in options and "policy_kwargs" in entry:
+        options["policy_kwargs"] = f"{{**{entry['policy_kwargs']}, **{options['policy_kwargs']}}}"  # rl-zoo3 evals it
+    return options
 
 
 def zoo_command(env_id: str, variant: str, seed: int, timesteps: int, args: argparse.Namespace, folder: pathlib.Path) -> list:

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.logger import HumanOutputFormat
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -86,6 +87,12 @@ def test_critic_learning_rate_variants_scale_each_entrys_rate(tmp_path):
     assert variant_options("pevfa-opr", "A-v0", conf) == {} and variant_options("ppo", "A-v0", conf) is None
     with pytest.raises(ValueError, match="constant learning_rate"):
         variant_options("pevfa-opr-critic-lr-x10", "C-v0", conf)
+    # a variant's policy_kwargs join the entry's (rl-zoo3 would replace them: the tuned 256x256 networks lost)
+    conf.write_text("A-v0:\n  policy_kwargs: dict(net_arch=[8], activation_fn=nn.ReLU)\nB-v0:\n  n_steps: 32\n")
+    merged = variant_options("pevfa-opr-elu", "A-v0", conf)["policy_kwargs"]
+    expected = dict(net_arch=[8], activation_fn=th.nn.ReLU, critic_activation_fn=th.nn.ELU)
+    assert eval(merged, {"nn": th.nn, "dict": dict}) == expected
+    assert variant_options("pevfa-opr-elu", "B-v0", conf) == {"policy_kwargs": "dict(critic_activation_fn=nn.ELU)"}
 
 
 def test_speed_encoder_and_memory_benchmarks(tmp_path):
