@@ -7,10 +7,13 @@ for the whole run here). Each run: CPU time (``time.process_time``) and wall-clo
 one torch thread, the variants of a seed one after the other in this process, and at the end the fraction of
 Adam's moment entries that are denormal (with flushing: 0).
 
-    # rl-zoo3's tuned entries (256x256 ReLU networks, VecNormalize) and SB3's defaults (64x64 Tanh)
-    python benchmarks/denormals.py --conf benchmarks/hyperparams/zoo_tuned.yml --env Hopper-v5 HalfCheetah-v5 \
-        --timesteps 60000 --seeds 0 1 --out docs/results/denormals_tuned.json
-    python benchmarks/denormals.py --env Hopper-v5 --timesteps 100000 --seeds 0 1 --out docs/results/denormals_default.json
+    cd benchmarks
+    # rl-zoo3's tuned entries (256x256 ReLU networks, VecNormalize), 60k steps, and SB3's defaults (64x64 Tanh)
+    python denormals.py --conf hyperparams/zoo_tuned.yml --env Hopper-v5 --timesteps 60000 --seeds 0 1 \
+        --out ../docs/results/denormals/tuned_hopper.json
+    python denormals.py --env Hopper-v5 --timesteps 100000 --seeds 0 1 --out ../docs/results/denormals/default_hopper.json
+    # one table of several files
+    python denormals.py --report ../docs/results/denormals/*.json
 """
 
 import argparse
@@ -57,31 +60,51 @@ def run(variant: str, env_id: str, conf: pathlib.Path | None, timesteps: int, se
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     returns = [info["r"] for info in model.ep_info_buffer]
     return {
-        "variant": variant, "env": env_id, "seed": seed, "timesteps": timesteps, "cpu_s": cpu, "wall_s": wall,
+        "variant": variant, "env": env_id, "conf": str(conf) if conf else None, "seed": seed, "timesteps": timesteps,
+        "cpu_s": cpu, "wall_s": wall,
         "steps_per_cpu_s": timesteps / cpu, "steps_per_s": timesteps / wall,
         "denormal_fraction": denormal_fraction(model.policy.optimizer),
         "last_100_episodes_return": float(np.mean(returns)) if returns else None,
     }  # fmt: skip
 
 
+def settings(row: dict) -> str:
+    return pathlib.Path(row["conf"]).stem if row.get("conf") else "SB3 defaults"
+
+
+def mean_of(runs: list[dict], key: str) -> float:
+    return float(np.mean([r[key] for r in runs])) if runs else float("nan")
+
+
 def table(rows: list[dict]) -> str:
+    """Per (settings, env) and variant: mean ± std over seeds of steps per CPU-second and per wall-clock second, both
+    as ratios to SB3 PPO as shipped (and CPU to PPO flushed), and the denormal fraction of Adam's moments at the end."""
     lines = [
-        "| env | variant | seeds | steps/CPU-s | vs ppo (CPU) | steps/s (wall) | vs ppo (wall) | denormal moments, end |",
-        "|---|---|---|---|---|---|---|---|",
+        "| settings, env | variant | seeds | steps/CPU-s | vs ppo (CPU) | vs flushed ppo (CPU) | steps/s (wall) "
+        "| vs ppo (wall) | denormal moments, end |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for env_id in dict.fromkeys(r["env"] for r in rows):
-        runs = {v: [r for r in rows if r["env"] == env_id and r["variant"] == v] for v in VARIANTS}
-        base_cpu = np.mean([r["steps_per_cpu_s"] for r in runs["ppo"]]) if runs["ppo"] else np.nan
-        base_wall = np.mean([r["steps_per_s"] for r in runs["ppo"]]) if runs["ppo"] else np.nan
+    for task in dict.fromkeys((settings(r), r["env"]) for r in rows):
+        runs = {v: [r for r in rows if (settings(r), r["env"]) == task and r["variant"] == v] for v in VARIANTS}
+        ppo, flushed = mean_of(runs["ppo"], "steps_per_cpu_s"), mean_of(runs["ppo-flush-denormal"], "steps_per_cpu_s")
         for variant, done in runs.items():
             if not done:
                 continue
             cpu, wall = np.array([r["steps_per_cpu_s"] for r in done]), np.array([r["steps_per_s"] for r in done])
-            denormal = np.mean([r["denormal_fraction"] for r in done])
             lines.append(
-                f"| {env_id} | {variant} | {len(done)} | {cpu.mean():.0f} ± {cpu.std():.0f} | {cpu.mean() / base_cpu:.2f}x | "
-                f"{wall.mean():.0f} ± {wall.std():.0f} | {wall.mean() / base_wall:.2f}x | {denormal:.2%} |"
+                f"| {task[0]}, {task[1]} | {variant} | {len(done)} | {cpu.mean():.0f} ± {cpu.std():.0f} | "
+                f"{cpu.mean() / ppo:.2f}x | {cpu.mean() / flushed:.2f}x | {wall.mean():.0f} ± {wall.std():.0f} | "
+                f"{wall.mean() / mean_of(runs['ppo'], 'steps_per_s'):.2f}x | {mean_of(done, 'denormal_fraction'):.2%} |"
             )
+    same, pairs = 0, 0
+    for plain, flushed_variant in (("ppo", "ppo-flush-denormal"), ("pevfa-no-flush-denormal", "pevfa")):
+        for a in (r for r in rows if r["variant"] == plain):
+            for b in rows:
+                if b["variant"] == flushed_variant and all(a.get(k) == b.get(k) for k in ("conf", "env", "seed", "timesteps")):
+                    pairs += 1
+                    same += a["last_100_episodes_return"] == b["last_100_episodes_return"]
+    lines += ["", f"Runs with and without flushing (same algorithm, settings, seed and steps) that ended with the same "
+              f"mean return of their last 100 training episodes: {same} of {pairs} pairs."]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -92,8 +115,14 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, default=60_000)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    parser.add_argument("--out", type=pathlib.Path, required=True, help="JSON file of every run (appended to)")
+    parser.add_argument("--out", type=pathlib.Path, help="JSON file of every run (appended to)")
+    parser.add_argument("--report", nargs="*", type=pathlib.Path, help="only print the table of these JSON files")
     args = parser.parse_args()
+    if args.report is not None:
+        print(table([row for path in args.report for row in json.loads(path.read_text())]))
+        return
+    if args.out is None:
+        parser.error("--out is required unless --report is given")
     th.set_num_threads(1)
     PPO("MlpPolicy", args.env[0], n_steps=64, batch_size=64).learn(64)  # untimed: the process's one-time costs
     rows = json.loads(args.out.read_text()) if args.out.exists() else []

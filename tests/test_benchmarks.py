@@ -123,13 +123,17 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
 
 
 def test_denormals_benchmark_runs_every_variant(tmp_path):
-    out = tmp_path / "denormals.json"
-    stdout = _run(str(ROOT / "benchmarks" / "denormals.py"), "--env", "CartPole-v1", "--timesteps", "64", "--out", str(out),
-                  cwd=ROOT / "benchmarks")  # fmt: skip
+    out, conf = tmp_path / "denormals.json", tmp_path / "conf.yml"
+    conf.write_text("CartPole-v1:\n  policy: MlpPolicy\n  n_steps: 64\n  batch_size: 32\n")
+    stdout = _run(str(ROOT / "benchmarks" / "denormals.py"), "--env", "CartPole-v1", "--timesteps", "128", "--conf", str(conf),
+                  "--out", str(out), cwd=ROOT / "benchmarks")  # fmt: skip
     rows = json.loads(out.read_text())
     assert [r["variant"] for r in rows] == ["ppo", "ppo-flush-denormal", "pevfa", "pevfa-no-flush-denormal"]
-    assert all(r["timesteps"] == 64 and r["cpu_s"] > 0 and 0.0 <= r["denormal_fraction"] < 1.0 for r in rows)
-    assert "| CartPole-v1 | ppo | 1 |" in stdout and "| 1.00x |" in stdout
+    assert all(r["timesteps"] == 128 and r["cpu_s"] > 0 and 0.0 <= r["denormal_fraction"] < 1.0 for r in rows)
+    assert "| conf, CartPole-v1 | ppo | 1 |" in stdout and "| 1.00x |" in stdout
+    report = _run(str(ROOT / "benchmarks" / "denormals.py"), "--report", str(out), str(out), cwd=ROOT / "benchmarks")
+    assert "| conf, CartPole-v1 | pevfa | 2 |" in report  # the same runs twice: two "seeds"
+    assert "the same mean return of their last 100 training episodes: 8 of 8 pairs" in report  # each file's 2 x 2
 
 
 def test_profile_benchmark_reports_both_algorithms(tmp_path):
