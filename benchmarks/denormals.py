@@ -69,7 +69,9 @@ def run(variant: str, env_id: str, conf: pathlib.Path | None, timesteps: int, se
 
 
 def settings(row: dict) -> str:
-    return pathlib.Path(row["conf"]).stem if row.get("conf") else "SB3 defaults"
+    """What a row's runs are compared within: its settings, env and steps."""
+    conf = pathlib.Path(row["conf"]).stem if row.get("conf") else "SB3 defaults"
+    return f"{conf}, {row['env']}, {row['timesteps'] // 1000}k"
 
 
 def mean_of(runs: list[dict], key: str) -> float:
@@ -80,19 +82,19 @@ def table(rows: list[dict]) -> str:
     """Per (settings, env) and variant: mean ± std over seeds of steps per CPU-second and per wall-clock second, both
     as ratios to SB3 PPO as shipped (and CPU to PPO flushed), and the denormal fraction of Adam's moments at the end."""
     lines = [
-        "| settings, env | variant | seeds | steps/CPU-s | vs ppo (CPU) | vs flushed ppo (CPU) | steps/s (wall) "
+        "| settings, env, steps | variant | seeds | steps/CPU-s | vs ppo (CPU) | vs flushed ppo (CPU) | steps/s (wall) "
         "| vs ppo (wall) | denormal moments, end |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for task in dict.fromkeys((settings(r), r["env"]) for r in rows):
-        runs = {v: [r for r in rows if (settings(r), r["env"]) == task and r["variant"] == v] for v in VARIANTS}
+    for task in dict.fromkeys(settings(r) for r in rows):
+        runs = {v: [r for r in rows if settings(r) == task and r["variant"] == v] for v in VARIANTS}
         ppo, flushed = mean_of(runs["ppo"], "steps_per_cpu_s"), mean_of(runs["ppo-flush-denormal"], "steps_per_cpu_s")
         for variant, done in runs.items():
             if not done:
                 continue
             cpu, wall = np.array([r["steps_per_cpu_s"] for r in done]), np.array([r["steps_per_s"] for r in done])
             lines.append(
-                f"| {task[0]}, {task[1]} | {variant} | {len(done)} | {cpu.mean():.0f} ± {cpu.std():.0f} | "
+                f"| {task} | {variant} | {len(done)} | {cpu.mean():.0f} ± {cpu.std():.0f} | "
                 f"{cpu.mean() / ppo:.2f}x | {cpu.mean() / flushed:.2f}x | {wall.mean():.0f} ± {wall.std():.0f} | "
                 f"{wall.mean() / mean_of(runs['ppo'], 'steps_per_s'):.2f}x | {mean_of(done, 'denormal_fraction'):.2%} |"
             )
