@@ -83,6 +83,8 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-none-no-history-critic-lr-x10": dict(representation="none", history_train_freq=0, critic_learning_rate_scale=10),
     # an embedding stream whose units cannot die (ELU: a gradient at every input), where ReLU units went flat
     "pevfa-opr-elu": dict(policy_kwargs="dict(critic_activation_fn=nn.ELU)"),
+    # a quarter of the historical updates (one per 160 env steps): less of the mixture of old policies in the critic
+    "pevfa-opr-history-freq-160": dict(history_train_freq=160),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
