@@ -74,13 +74,20 @@ def settings(row: dict) -> str:
     return f"{conf}, {row['env']}, {row['timesteps'] // 1000}k"
 
 
-def mean_of(runs: list[dict], key: str) -> float:
-    return float(np.mean([r[key] for r in runs])) if runs else float("nan")
+def ratio(runs: list[dict], baseline: list[dict], key: str) -> float:
+    """Mean of ``key`` over ``runs`` / over ``baseline``, both over the seeds they share (nan if none)."""
+    seeds = {r["seed"] for r in runs} & {r["seed"] for r in baseline}
+    if not seeds:
+        return float("nan")
+    return float(
+        np.mean([r[key] for r in runs if r["seed"] in seeds]) / np.mean([r[key] for r in baseline if r["seed"] in seeds])
+    )
 
 
 def table(rows: list[dict]) -> str:
-    """Per (settings, env) and variant: mean ± std over seeds of steps per CPU-second and per wall-clock second, both
-    as ratios to SB3 PPO as shipped (and CPU to PPO flushed), and the denormal fraction of Adam's moments at the end."""
+    """Per (settings, env, steps) and variant: mean ± std over seeds of steps per CPU-second and per wall-clock second,
+    as ratios to SB3 PPO as shipped (and CPU to PPO flushed) over the seeds both ran, and the denormal fraction of
+    Adam's moments at the end."""
     lines = [
         "| settings, env, steps | variant | seeds | steps/CPU-s | vs ppo (CPU) | vs flushed ppo (CPU) | steps/s (wall) "
         "| vs ppo (wall) | denormal moments, end |",
@@ -88,25 +95,27 @@ def table(rows: list[dict]) -> str:
     ]
     for task in dict.fromkeys(settings(r) for r in rows):
         runs = {v: [r for r in rows if settings(r) == task and r["variant"] == v] for v in VARIANTS}
-        ppo, flushed = mean_of(runs["ppo"], "steps_per_cpu_s"), mean_of(runs["ppo-flush-denormal"], "steps_per_cpu_s")
         for variant, done in runs.items():
             if not done:
                 continue
             cpu, wall = np.array([r["steps_per_cpu_s"] for r in done]), np.array([r["steps_per_s"] for r in done])
+            seeds = ", ".join(str(r["seed"]) for r in done)
             lines.append(
-                f"| {task} | {variant} | {len(done)} | {cpu.mean():.0f} ± {cpu.std():.0f} | "
-                f"{cpu.mean() / ppo:.2f}x | {cpu.mean() / flushed:.2f}x | {wall.mean():.0f} ± {wall.std():.0f} | "
-                f"{wall.mean() / mean_of(runs['ppo'], 'steps_per_s'):.2f}x | {mean_of(done, 'denormal_fraction'):.2%} |"
+                f"| {task} | {variant} | {seeds} | {cpu.mean():.0f} ± {cpu.std():.0f} | "
+                f"{ratio(done, runs['ppo'], 'steps_per_cpu_s'):.2f}x | "
+                f"{ratio(done, runs['ppo-flush-denormal'], 'steps_per_cpu_s'):.2f}x | {wall.mean():.0f} ± {wall.std():.0f} | "
+                f"{ratio(done, runs['ppo'], 'steps_per_s'):.2f}x | {np.mean([r['denormal_fraction'] for r in done]):.2%} |"
             )
-    same, pairs = 0, 0
-    for plain, flushed_variant in (("ppo", "ppo-flush-denormal"), ("pevfa-no-flush-denormal", "pevfa")):
-        for a in (r for r in rows if r["variant"] == plain):
-            for b in rows:
-                if b["variant"] == flushed_variant and all(a.get(k) == b.get(k) for k in ("conf", "env", "seed", "timesteps")):
-                    pairs += 1
-                    same += a["last_100_episodes_return"] == b["last_100_episodes_return"]
-    lines += ["", f"Runs with and without flushing (same algorithm, settings, seed and steps) that ended with the same "
-              f"mean return of their last 100 training episodes: {same} of {pairs} pairs."]  # fmt: skip
+    returns = {(r["variant"], settings(r), r["seed"]): r["last_100_episodes_return"] for r in rows}
+    pairs = [
+        (returns[(plain, *rest)], returns[(flushed, *rest)])
+        for plain, flushed in (("ppo", "ppo-flush-denormal"), ("pevfa-no-flush-denormal", "pevfa"))
+        for variant, *rest in returns
+        if variant == plain and (flushed, *rest) in returns
+    ]
+    same = sum(a == b for a, b in pairs)
+    lines += ["", "Runs with and without flushing (same algorithm, settings, env, steps and seed) that ended with the "
+              f"same mean return of their last 100 training episodes: {same} of {len(pairs)}."]  # fmt: skip
     return "\n".join(lines)
 
 

@@ -106,6 +106,16 @@ def test_flush_denormals_restores_the_threads_setting():
     assert not denormals_flushed()
     with flush_denormals(False):
         assert not denormals_flushed()
+    with pytest.raises(RuntimeError), flush_denormals():  # restored on an exception too
+        raise RuntimeError
+    assert not denormals_flushed()
+    threads = th.get_num_threads()
+    th.set_num_threads(2)  # torch's worker threads keep their own setting: nothing is flushed
+    try:
+        with flush_denormals():
+            assert not denormals_flushed()
+    finally:
+        th.set_num_threads(threads)
     th.set_flush_denormal(True)
     try:
         with flush_denormals():  # a user's own setting stays on after the update

@@ -71,9 +71,10 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param fast_path: Critic values batched after each rollout, the actor alone acting
         (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
         SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
-    :param flush_denormal: Float32 denormal numbers flushed to zero during the update (``torch.set_flush_denormal``,
-        the thread's setting restored after; :mod:`sb3_pevfa.pevfa.denormals`): Adam's moments of ReLU units without
-        gradient decay through the denormal range, where the CPU is tens of times slower; False: IEEE denormals
+    :param flush_denormal: Denormal numbers flushed to zero during the update with one torch thread
+        (``torch.set_flush_denormal``, the thread's setting restored after; :mod:`sb3_pevfa.pevfa.denormals`): Adam's
+        moments of ReLU units without gradient decay through the denormal range, where the CPU is tens of times
+        slower; False: IEEE denormals
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
