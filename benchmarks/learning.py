@@ -13,6 +13,8 @@ and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one tor
     python benchmarks/learning.py --paper
     # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
     python benchmarks/learning.py --report --plot docs/results/learning.png
+    # runs of several invocations on machines of different speeds: per-second views against each seed's PPO run
+    python benchmarks/learning.py --report --paired --out docs/results/zoo_tuned_freq160
     # A2C vs A2CPeVFA (SB3's A2C defaults), Hopper-v5, 100k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 --variants a2c a2c-pevfa-opr --timesteps 100000 --eval-freq 10000 \
         --out docs/results/learning_a2c --baseline a2c --plot docs/results/learning_a2c.png
@@ -238,7 +240,7 @@ def bootstrap_ci(values: np.ndarray, reps: int = 5000) -> tuple[float, float]:
     return float(result.confidence_interval.low), float(result.confidence_interval.high)
 
 
-def report(out: pathlib.Path, baseline: str = "ppo") -> str:
+def report(out: pathlib.Path, baseline: str = "ppo", paired: bool = False) -> str:
     """Table-1 style markdown per task: max average return +- half a std over seeds (as the paper), its rliable
     95 % CI, final return, area under the curve, the change of the mean vs PPO, seeds and wall time."""
     lines = []
@@ -261,13 +263,14 @@ def report(out: pathlib.Path, baseline: str = "ppo") -> str:
                 f"{change} | {s['final'].mean():.0f} ± {s['final'].std() / 2:.0f} | {s['auc'].mean():.0f} | "
                 f"{', '.join(f'{v:.0f}' for v in s['max'])} | {np.mean([r['wall_time_s'] for r in runs]):.0f} s |"
             )
-        lines += ["", *per_second(variants, baseline), ""]
-    return "\n".join(lines + aggregate_table(results, baseline))
+        lines += ["", *per_second(variants, baseline, paired), ""]
+    return "\n".join(lines + aggregate_table(results, baseline, paired))
 
 
-def task_scores(results: dict[str, dict[str, list[dict]]], baseline: str) -> dict[str, dict[str, dict]]:
+def task_scores(results: dict[str, dict[str, list[dict]]], baseline: str, paired: bool = False) -> dict[str, dict[str, dict]]:
     """view -> variant -> task -> per-seed scores, for the variants run on every task that has the baseline: the
-    max average return (per step) and the best-so-far return at the baseline's mean wall-clock time (per second)."""
+    max average return (per step) and the best-so-far return at the baseline's mean wall-clock time (per second;
+    ``paired``: at the time of the baseline run of the same seed, :func:`paired_runs`)."""
     tasks = {env_id: variants for env_id, variants in results.items() if baseline in variants}
     common = set.intersection(*(set(variants) for variants in tasks.values())) if tasks else set()
     views: dict[str, dict[str, dict]] = {
@@ -276,23 +279,23 @@ def task_scores(results: dict[str, dict[str, list[dict]]], baseline: str) -> dic
         "best-so-far at the baseline's CPU time": {},
     }
     for env_id, variants in tasks.items():
-        budget = budgets(variants[baseline])
         for variant in common:
             runs = variants[variant]
             views["max average return (per step)"].setdefault(variant, {})[env_id] = scores(runs)["max"]
-            if "wall_s" in runs[0]["curve"][0]:
-                best = np.array([best_so_far_at(r, budget["wall"]) for r in runs])
+            pairs = paired_runs(runs, variants[baseline], paired)
+            if pairs and "wall_s" in runs[0]["curve"][0]:
+                best = np.array([best_so_far_at(r, budgets(base)["wall"]) for r, base in pairs])
                 views["best-so-far at the baseline's time"].setdefault(variant, {})[env_id] = best
-            if all("cpu_time_s" in r for r in runs + variants[baseline]):
-                best = np.array([best_so_far_at(r, budget["cpu"], "cpu") for r in runs])
+            if pairs and all("cpu_time_s" in r for r in runs + variants[baseline]):
+                best = np.array([best_so_far_at(r, budgets(base)["cpu"], "cpu") for r, base in pairs])
                 views["best-so-far at the baseline's CPU time"].setdefault(variant, {})[env_id] = best
     return {view: variants for view, variants in views.items() if variants or view.endswith("(per step)")}
 
 
-def aggregate_table(results: dict[str, dict[str, list[dict]]], baseline: str) -> list[str]:
+def aggregate_table(results: dict[str, dict[str, list[dict]]], baseline: str, paired: bool = False) -> list[str]:
     """The aggregate over tasks (benchmarks/aggregate.py): IQM and mean of the scores normalised by the baseline's
     mean per task, with 95 % stratified bootstrap CIs over tasks and seeds."""
-    views = task_scores(results, baseline)
+    views = task_scores(results, baseline, paired)
     if not views["max average return (per step)"]:
         return []
     tasks = sorted(views["max average return (per step)"][baseline])
@@ -315,14 +318,14 @@ def aggregate_table(results: dict[str, dict[str, list[dict]]], baseline: str) ->
     return [*lines, ""]
 
 
-def plot_profiles(out: pathlib.Path, png: pathlib.Path, baseline: str) -> None:
+def plot_profiles(out: pathlib.Path, png: pathlib.Path, baseline: str, paired: bool = False) -> None:
     """Performance profiles of both views (fraction of runs above tau, baseline-normalised, with 95 % bands)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    views = task_scores(load_results(out), baseline)
+    views = task_scores(load_results(out), baseline, paired)
     fig, axes = plt.subplots(1, len(views), figsize=(6 * len(views), 4), squeeze=False)
     taus = np.linspace(0.0, 2.0, 81)
     for ax, (view, variants) in zip(axes[0], views.items()):
@@ -361,34 +364,65 @@ def budgets(baseline_runs: list[dict]) -> dict[str, float]:
     }
 
 
-def per_second(variants: dict[str, list[dict]], baseline: str) -> list[str]:
+def paired_runs(runs: list[dict], baseline_runs: list[dict], paired: bool) -> list[tuple[dict, list[dict]]]:
+    """Each run with the baseline runs that set its budget: all of them, or (``paired``) the one of its seed, which
+    ran beside it on the same machine (runs of a seed the baseline lacks are left out). Pairs keep the per-second
+    view true when invocations ran on machines of different speeds."""
+    if not paired:
+        return [(run, baseline_runs) for run in runs]
+    by_seed = {r["seed"]: r for r in baseline_runs}
+    return [(run, [by_seed[run["seed"]]]) for run in runs if run["seed"] in by_seed]
+
+
+def per_second(variants: dict[str, list[dict]], baseline: str, paired: bool = False) -> list[str]:
     """The same runs per second: speed (steps per wall-clock and per CPU second of the training process) and the
-    best-so-far return at the baseline's own mean wall-clock time of a whole run."""
+    best-so-far return at the baseline's own mean wall-clock time of a whole run; ``paired``: speed as the mean
+    ratio to the baseline run of the same seed, and that run's time as the budget (:func:`paired_runs`)."""
     if baseline not in variants or "wall_s" not in variants[baseline][0]["curve"][0]:
         return []
     budget = budgets(variants[baseline])
-    base_speed = np.mean([r["timesteps"] / r["wall_time_s"] for r in variants[baseline]])
     has_cpu = all("cpu_time_s" in r for runs in variants.values() for r in runs)
-    base_cpu = np.mean([r["timesteps"] / r["cpu_time_s"] for r in variants[baseline]]) if has_cpu else np.nan
+    clocks = ("wall", "cpu") if has_cpu else ("wall",)
+    if paired:
+        title = f"Per second, each seed against the {baseline} run of its seed (its whole run's time the budget"
+        at = "at the paired run's time"
+        columns = [f"best-so-far {at} (± ½ std) | per seed |", f"best-so-far {at}, CPU (± ½ std) | per seed |"]
+    else:
+        title = f"Per second (budgets: {baseline}'s mean run, {budget['wall']:.0f} s wall-clock" + (
+            f", {budget['cpu']:.0f} CPU-s" if has_cpu else ""
+        )
+        columns = [f"best-so-far at {budget['wall']:.0f} s (± ½ std) | per seed |",
+                   f"best-so-far at {budget['cpu']:.0f} CPU-s (± ½ std) | per seed |"]  # fmt: skip
     lines = [
-        f"Per second (budgets: {baseline}'s mean run, {budget['wall']:.0f} s wall-clock"
-        + (f", {budget['cpu']:.0f} CPU-s; an evaluation's CPU time is its run's, prorated by steps):" if has_cpu else "):"),
+        title + ("; an evaluation's CPU time is its run's, prorated by steps):" if has_cpu else "):"),
         "",
-        f"| variant | steps/s (wall) | steps/CPU-s | speed vs {baseline} (wall / CPU) | best-so-far at {budget['wall']:.0f} s "
-        f"(± ½ std) | per seed |" + (f" best-so-far at {budget['cpu']:.0f} CPU-s (± ½ std) | per seed |" if has_cpu else ""),
+        f"| variant | steps/s (wall) | steps/CPU-s | speed vs {baseline} (wall / CPU) | " + " ".join(columns[: len(clocks)]),
         "|---|---|---|---|---|---|" + ("---|---|" if has_cpu else ""),
     ]
     for variant, runs in sorted(variants.items(), key=lambda item: (item[0] != baseline, item[0])):
+        pairs = paired_runs(runs, variants[baseline], paired)
+        if not pairs:
+            continue
+        runs = [run for run, _ in pairs]
         speed = np.array([r["timesteps"] / r["wall_time_s"] for r in runs])
         cpu = np.mean([r["timesteps"] / r["cpu_time_s"] for r in runs]) if has_cpu else np.nan
+        ratio = {
+            clock: np.mean([speed_of(run, clock) / np.mean([speed_of(b, clock) for b in base]) for run, base in pairs])
+            for clock in clocks
+        }
         row = f"| {variant} | {speed.mean():.0f} ± {speed.std():.0f} | "
         row += f"{cpu:.0f} | " if has_cpu else "not recorded | "
-        row += f"{speed.mean() / base_speed:.2f}x / " + (f"{cpu / base_cpu:.2f}x | " if has_cpu else "- | ")
-        for clock in ("wall", "cpu") if has_cpu else ("wall",):
-            best = np.array([best_so_far_at(r, budget[clock], clock) for r in runs])
+        row += f"{ratio['wall']:.2f}x / " + (f"{ratio['cpu']:.2f}x | " if has_cpu else "- | ")
+        for clock in clocks:
+            best = np.array([best_so_far_at(r, budgets(base)[clock], clock) for r, base in pairs])
             row += f"{best.mean():.0f} ± {best.std() / 2:.0f} | {', '.join(f'{v:.0f}' for v in best)} | "
         lines.append(row.rstrip())
     return lines
+
+
+def speed_of(run: dict, clock: str) -> float:
+    """Environment steps per second of a whole run, by ``"wall"``-clock or by the training process's ``"cpu"`` time."""
+    return run["timesteps"] / run["wall_time_s" if clock == "wall" else "cpu_time_s"]
 
 
 def plot(out: pathlib.Path, png: pathlib.Path) -> None:
@@ -445,6 +479,9 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
     parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
+    parser.add_argument(
+        "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
+    )
     args = parser.parse_args()
     if args.paper:
         tasks, args.variants, args.seeds = dict(PAPER_TASKS), PAPER_VARIANTS, list(range(10))
@@ -462,10 +499,10 @@ def main() -> None:
         with ThreadPoolExecutor(args.workers) as pool:  # threads only wait on the training processes
             for message in pool.map(lambda job: run(*job), jobs):
                 print(message, flush=True)
-    print(report(args.out, args.baseline))
+    print(report(args.out, args.baseline, args.paired))
     if args.plot is not None:
         plot(args.out, args.plot)
-        plot_profiles(args.out, args.plot.with_name(f"{args.plot.stem}_profile.png"), args.baseline)
+        plot_profiles(args.out, args.plot.with_name(f"{args.plot.stem}_profile.png"), args.baseline, args.paired)
 
 
 if __name__ == "__main__":
