@@ -345,7 +345,7 @@ def cpu_seconds(run: dict, point: dict) -> float:
     """The training process's CPU seconds at evaluation ``point``: the run's CPU time prorated by its steps (only the
     whole run's is recorded; a run's CPU per step is about constant, the history's cost being bounded from its first
     5k steps)."""
-    return run["cpu_time_s"] * point["timesteps"] / run["timesteps"]
+    return run["cpu_time_s"] * (point["timesteps"] / run["timesteps"])  # exactly the run's at its last step
 
 
 def best_so_far_at(run: dict, seconds: float, clock: str = "wall") -> float:
