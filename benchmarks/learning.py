@@ -404,8 +404,8 @@ def per_second(variants: dict[str, list[dict]], baseline: str, paired: bool = Fa
         if not pairs:
             continue
         runs = [run for run, _ in pairs]
-        speed = np.array([r["timesteps"] / r["wall_time_s"] for r in runs])
-        cpu = np.mean([r["timesteps"] / r["cpu_time_s"] for r in runs]) if has_cpu else np.nan
+        speed = np.array([speed_of(r, "wall") for r in runs])
+        cpu = np.mean([speed_of(r, "cpu") for r in runs]) if has_cpu else np.nan
         ratio = {
             clock: np.mean([speed_of(run, clock) / np.mean([speed_of(b, clock) for b in base]) for run, base in pairs])
             for clock in clocks

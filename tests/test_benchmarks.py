@@ -76,7 +76,7 @@ def test_best_so_far_by_wall_clock_and_by_cpu_time():
 def test_paired_per_second_view_budgets_each_seed_by_its_baseline_run():
     """--paired: each run against the baseline run of its seed (its machine), by hand; a seed without one is left out."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from learning import per_second, task_scores
+    from learning import best_so_far_at, per_second, task_scores
 
     def run(seed, returns, cpu, wall):
         curve = [dict(timesteps=t, mean_return=r, wall_s=w) for t, r, w in zip((100, 200, 300), returns, wall)]
@@ -97,6 +97,9 @@ def test_paired_per_second_view_budgets_each_seed_by_its_baseline_run():
     # unpaired, the budget is PPO's mean run (60 s) for every seed: seed 0 gets its whole run, seed 1 two thirds
     unpaired = task_scores({"Task": variants}, "ppo")["best-so-far at the baseline's CPU time"]["slow"]["Task"]
     assert unpaired.tolist() == [5.0, 7.0, 9.0]
+    # a run's last evaluation is inside its own CPU time (456.000964 * 300032 / 300032 rounds above it)
+    last = dict(seed=0, timesteps=300032, cpu_time_s=456.000964, curve=[dict(timesteps=300032, mean_return=1.0)])
+    assert best_so_far_at(last, last["cpu_time_s"], "cpu") == 1.0
 
 
 def test_critic_learning_rate_variants_scale_each_entrys_rate(tmp_path):
