@@ -8,7 +8,9 @@ for one env reports per variant, mean over seeds:
   drop between them, and where the peak came;
 - training signals before and after the peak: the on-policy critic's explained variance and value loss, the
   critic's loss on historical samples, the policy's KL per update, its std, and what tells whether the critic can
-  tell policies apart (saturated embedding units, ``||dV/dchi||``).
+  tell policies apart (saturated embedding units, ``||dV/dchi||``);
+- with ``--windows``, the same signals per window of env steps (the same steps for every run, so that runs which
+  peak early and late are compared at equal training).
 
     python benchmarks/training_logs.py --out docs/results/ablation_targets_critic --env Hopper-v5 \
         --plot docs/results/ablation_targets_critic_logs.png
@@ -134,6 +136,29 @@ def report(out: pathlib.Path, env_id: str) -> str:
     return "\n".join(lines)
 
 
+def window_report(out: pathlib.Path, env_id: str, edges: list[int]) -> str:
+    """Markdown: each signal (and the evaluations' mean return) per window of env steps ``(edges[i-1], edges[i]]``,
+    mean over seeds, one row per variant and window."""
+    signals = [key for key in KEYS if key.startswith(("train/", "pevfa/"))]
+    lines = [
+        f"**{env_id}**: training signals per window of env steps (mean over seeds)",
+        "",
+        "| variant | steps | eval return | " + " | ".join(key.split("/")[1] for key in signals) + " |",
+        "|---|---|---|" + "---|" * len(signals),
+    ]
+    for variant, runs in runs_of(out, env_id).items():
+        for low, high in zip([0, *edges], edges):
+            returns = [
+                np.mean([p["mean_return"] for p in result["curve"] if low < p["timesteps"] <= high] or [np.nan])
+                for result, _ in runs
+            ]
+            cells = [f"{finite_mean([window_mean(logs, key, low, high) for _, logs in runs]):.3g}" for key in signals]
+            lines.append(
+                f"| {variant} | {low // 1000}k-{high // 1000}k | {finite_mean(returns):.0f} | " + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines)
+
+
 def interpolated(grid: np.ndarray, logs: dict, key: str) -> np.ndarray:
     """``key`` on ``grid`` from the iterations that logged it (evaluation tables log no training keys)."""
     steps, values = np.asarray(logs["time/total_timesteps"]), np.asarray(logs[key], dtype=float)
@@ -178,10 +203,13 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True, help="a benchmarks/learning.py result folder")
     parser.add_argument("--env", nargs="+", default=["Hopper-v5"])
     parser.add_argument("--plot", type=pathlib.Path, default=None)
+    parser.add_argument("--windows", type=int, nargs="+", default=None, help="also the signals per window: its upper ends")
     args = parser.parse_args()
     collect(args.out)
     for env_id in args.env:
         print(report(args.out, env_id), end="\n\n")
+        if args.windows:
+            print(window_report(args.out, env_id, sorted(args.windows)), end="\n\n")
     if args.plot is not None:
         plot(args.out, args.env, args.plot)
 

@@ -263,3 +263,26 @@ def test_normalize_memory_benchmark_shows_the_chunks_bound():
     out = _run(str(ROOT / "benchmarks" / "normalize_memory.py"), "--samples", "100000", "--obs-dim", "16", cwd=ROOT)
     peaks = [float(line.split("peak ")[1].split(" MiB")[0]) for line in out.splitlines()]
     assert len(peaks) == 2 and peaks[1] < peaks[0] / 3  # 16384-row chunks against the whole history at once
+
+
+def test_training_logs_per_window_of_steps_by_hand(tmp_path):
+    """Signals and evaluations averaged per window of env steps, then over seeds: by hand on two runs."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import training_logs
+
+    (tmp_path / "logs").mkdir()
+    steps = [1000, 2000, 3000, 4000]
+    for seed, (stds, returns) in enumerate((([0.9, 0.8, 0.7, 0.6], [10, 30]), ([0.5, 0.5, 0.3, np.nan], [20, 60]))):
+        name = f"Hopper-v5_ppo_seed{seed}.json"
+        curve = [{"timesteps": 2000, "mean_return": returns[0]}, {"timesteps": 4000, "mean_return": returns[1]}]
+        (tmp_path / name).write_text(json.dumps({"variant": "ppo", "curve": curve}))
+        logs = {key: [np.nan] * 4 for key in training_logs.KEYS}
+        logs.update({"time/total_timesteps": steps, "train/std": stds})
+        (tmp_path / "logs" / name).write_text(json.dumps(logs))
+    report = training_logs.window_report(tmp_path, "Hopper-v5", [2000, 4000])
+    rows = [line.split(" | ") for line in report.splitlines() if line.startswith("| ppo")]
+    std = 2 + training_logs.KEYS[2:].index("train/std") + 1  # variant, steps, eval return, then the signals
+    # window 1: seed 0 mean(0.9, 0.8) = 0.85, seed 1 0.5 -> 0.675; window 2: 0.65 and 0.3 (NaN left out) -> 0.475
+    assert [row[1] for row in rows] == ["0k-2k", "2k-4k"]
+    assert [row[2] for row in rows] == ["15", "45"]
+    assert [row[std] for row in rows] == ["0.675", "0.475"]
