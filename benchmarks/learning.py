@@ -87,6 +87,8 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-opr-elu": dict(policy_kwargs="dict(critic_activation_fn=nn.ELU)"),
     # a quarter of the historical updates (one per 160 env steps): less of the mixture of old policies in the critic
     "pevfa-opr-history-freq-160": dict(history_train_freq=160),
+    # a fifth of the history (40k samples: the last ~20 policies of 2048 steps, where 200k holds ~98): younger data
+    "pevfa-opr-history-40k": dict(history_buffer_size=40_000),
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
