@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 import torch as th
+import yaml
 from stable_baselines3.common.logger import HumanOutputFormat
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -286,3 +287,13 @@ def test_training_logs_per_window_of_steps_by_hand(tmp_path):
     assert [row[1] for row in rows] == ["0k-2k", "2k-4k"]
     assert [row[2] for row in rows] == ["15", "45"]
     assert [row[std] for row in rows] == ["0.675", "0.475"]
+
+
+def test_entropy_config_is_the_learning_config_with_an_entropy_bonus():
+    """learning_entropy.yml changes only ent_coef (0.01) from learning.yml, on every task it lists."""
+    base = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning.yml").read_text())
+    entropy = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning_entropy.yml").read_text())
+    assert {"Hopper-v5", "Walker2d-v5"} <= set(entropy)
+    for env_id, entry in entropy.items():
+        assert entry["ent_coef"] == 0.01, env_id
+        assert {**entry, "ent_coef": base[env_id]["ent_coef"]} == base[env_id], env_id
