@@ -5,12 +5,15 @@ one table per iteration), keeps them compactly as ``<out>/logs/<run>.json`` (the
 for one env reports per variant, mean over seeds:
 
 - the evaluation curve's peak (max average return), the final return (mean of the last three evaluations) and the
-  drop between them, and where the peak came;
+  drop between them, and where the peak came; the same drop from the best mean of three consecutive evaluations
+  (a maximum over many noisy evaluations is biased upwards: this drop is the part that the noise does not explain);
 - training signals before and after the peak: the on-policy critic's explained variance and value loss, the
   critic's loss on historical samples, the policy's KL per update, its std, and what tells whether the critic can
   tell policies apart (saturated embedding units, ``||dV/dchi||``);
 - with ``--windows``, the same signals per window of env steps (the same steps for every run, so that runs which
-  peak early and late are compared at equal training).
+  peak early and late are compared at equal training). A window ``(low, high]`` averages the runs that reached
+  ``high`` (its ``seeds`` column counts them); steps after the last edge are not reported. SB3 dumps an update's
+  ``train/*`` values with the next rollout's table, so they are dated up to one rollout (``n_steps``) late.
 
     python benchmarks/training_logs.py --out docs/results/ablation_targets_critic --env Hopper-v5 \
         --plot docs/results/ablation_targets_critic_logs.png
@@ -38,6 +41,8 @@ KEYS = (
     "pevfa/embedding_saturated_fraction",
     "pevfa/value_chi_gradient",
 )
+#: Training signals reported (the rest of :data:`KEYS` locates them)
+SIGNALS = tuple(key for key in KEYS if key.startswith(("train/", "pevfa/")))
 ROW = re.compile(r"^\|\s+(\S+)\s+\|\s+(\S*)\s+\|$")
 
 
@@ -84,13 +89,14 @@ def runs_of(out: pathlib.Path, env_id: str) -> dict[str, list[tuple[dict, dict]]
 
 
 def window_mean(logs: dict, key: str, low: float, high: float) -> float:
+    """Mean of the finite values of ``key`` logged at env steps in ``(low, high]``, NaN if none."""
     steps, values = np.asarray(logs.get("time/total_timesteps", [])), np.asarray(logs.get(key, []), dtype=float)
     chosen = values[(steps > low) & (steps <= high)] if len(values) else values
     return float(np.nanmean(chosen)) if np.isfinite(chosen).any() else float("nan")
 
 
 def finite_mean(values: list[float]) -> float:
-    """Mean of the finite values (a run whose peak is its last evaluation has no "after"), NaN if none."""
+    """Mean over runs of their finite values (a run whose peak is its last evaluation has no "after"), NaN if none."""
     finite = [value for value in values if np.isfinite(value)]
     return float(np.mean(finite)) if finite else float("nan")
 
@@ -98,64 +104,76 @@ def finite_mean(values: list[float]) -> float:
 def report(out: pathlib.Path, env_id: str) -> str:
     """Markdown: the peak and the fall per variant, and each signal averaged before and after the peak."""
     lines = [
-        f"**{env_id}**: peak and fall (mean over seeds; final = mean of the last three evaluations)",
+        f"**{env_id}**: peak and fall (mean over seeds; final = mean of the last three evaluations; smoothed peak = "
+        "the best mean of three consecutive evaluations, the peak without the luck of one evaluation)",
         "",
-        "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % |",
-        "|---|---|---|---|---|---|---|",
+        "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % | smoothed peak | fall from it |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    signals = [key for key in KEYS if key.startswith(("train/", "pevfa/"))]
     phase_rows = []
     for variant, runs in runs_of(out, env_id).items():
-        peaks, finals, peak_steps, falls = [], [], [], 0
-        before = {key: [] for key in signals}
-        after = {key: [] for key in signals}
+        peaks, finals, peak_steps, falls, smoothed = [], [], [], 0, []
+        before = {key: [] for key in SIGNALS}
+        after = {key: [] for key in SIGNALS}
         for result, logs in runs:
             curve = result["curve"]
             returns = np.array([point["mean_return"] for point in curve])
             steps = np.array([point["timesteps"] for point in curve])
             peak, final = returns.max(), returns[-3:].mean()
             peaks.append(peak), finals.append(final), peak_steps.append(steps[returns.argmax()])
+            smoothed.append(np.convolve(returns, np.ones(3) / 3, mode="valid").max() if len(returns) >= 3 else final)
             falls += final < 0.8 * peak
-            for key in signals:
+            for key in SIGNALS:
                 before[key].append(window_mean(logs, key, 0, steps[returns.argmax()]))
                 after[key].append(window_mean(logs, key, steps[returns.argmax()], np.inf))
         lines.append(
             f"| {variant} | {len(runs)} | {np.mean(peaks):.0f} | {np.mean(peak_steps) / 1000:.0f}k | {np.mean(finals):.0f} | "
-            f"{(np.mean(finals) / np.mean(peaks) - 1) * 100:+.0f} % | {falls} of {len(runs)} |"
+            f"{(np.mean(finals) / np.mean(peaks) - 1) * 100:+.0f} % | {falls} of {len(runs)} | {np.mean(smoothed):.0f} | "
+            f"{(np.mean(finals) / np.mean(smoothed) - 1) * 100:+.0f} % |"
         )
-        cells = [f"{finite_mean(before[key]):.3g} / {finite_mean(after[key]):.3g}" for key in signals]
+        cells = [f"{finite_mean(before[key]):.3g} / {finite_mean(after[key]):.3g}" for key in SIGNALS]
         phase_rows.append(f"| {variant} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "Training signals, mean before / after each run's peak (NaN: not logged by that variant):",
         "",
-        "| variant | " + " | ".join(key.split("/")[1] for key in signals) + " |",
-        "|---|" + "---|" * len(signals),
+        *header(["variant"]),
         *phase_rows,
     ]
     return "\n".join(lines)
 
 
+def header(first: list[str]) -> list[str]:
+    """A markdown table's header: the ``first`` columns, then one per signal."""
+    names = [*first, *(key.split("/")[1] for key in SIGNALS)]
+    return ["| " + " | ".join(names) + " |", "|" + "---|" * len(names)]
+
+
+def thousands(steps: int) -> str:
+    return f"{steps / 1000:g}k"
+
+
 def window_report(out: pathlib.Path, env_id: str, edges: list[int]) -> str:
     """Markdown: each signal (and the evaluations' mean return) per window of env steps ``(edges[i-1], edges[i]]``,
-    mean over seeds, one row per variant and window."""
-    signals = [key for key in KEYS if key.startswith(("train/", "pevfa/"))]
+    mean over the seeds that reached ``edges[i]`` (NaN: no such seed, or not logged), one row per variant and window."""
+    if not edges or min(edges) <= 0:
+        raise ValueError(f"window edges must be positive env steps, got {edges}")
+    edges = sorted(set(edges))
     lines = [
-        f"**{env_id}**: training signals per window of env steps (mean over seeds)",
+        f"**{env_id}**: training signals per window of env steps (mean over the seeds that reached its end; NaN: not logged)",
         "",
-        "| variant | steps | eval return | " + " | ".join(key.split("/")[1] for key in signals) + " |",
-        "|---|---|---|" + "---|" * len(signals),
+        *header(["variant", "steps", "seeds", "eval return"]),
     ]
     for variant, runs in runs_of(out, env_id).items():
         for low, high in zip([0, *edges], edges):
+            reached = [(result, logs) for result, logs in runs if result["timesteps"] >= high]
             returns = [
                 np.mean([p["mean_return"] for p in result["curve"] if low < p["timesteps"] <= high] or [np.nan])
-                for result, _ in runs
+                for result, _ in reached
             ]
-            cells = [f"{finite_mean([window_mean(logs, key, low, high) for _, logs in runs]):.3g}" for key in signals]
-            lines.append(
-                f"| {variant} | {low // 1000}k-{high // 1000}k | {finite_mean(returns):.0f} | " + " | ".join(cells) + " |"
-            )
+            cells = [f"{finite_mean([window_mean(logs, key, low, high) for _, logs in reached]):.3g}" for key in SIGNALS]
+            label = f"{thousands(low)}-{thousands(high)}"
+            lines.append(f"| {variant} | {label} | {len(reached)} | {finite_mean(returns):.0f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -203,13 +221,19 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True, help="a benchmarks/learning.py result folder")
     parser.add_argument("--env", nargs="+", default=["Hopper-v5"])
     parser.add_argument("--plot", type=pathlib.Path, default=None)
-    parser.add_argument("--windows", type=int, nargs="+", default=None, help="also the signals per window: its upper ends")
+    parser.add_argument(
+        "--windows",
+        type=int,
+        nargs="+",
+        default=None,
+        help="also the signals per window of env steps, given by the windows' upper ends (e.g. 100000 200000 300000)",
+    )
     args = parser.parse_args()
     collect(args.out)
     for env_id in args.env:
         print(report(args.out, env_id), end="\n\n")
         if args.windows:
-            print(window_report(args.out, env_id, sorted(args.windows)), end="\n\n")
+            print(window_report(args.out, env_id, args.windows), end="\n\n")
     if args.plot is not None:
         plot(args.out, args.env, args.plot)
 

@@ -267,33 +267,62 @@ def test_normalize_memory_benchmark_shows_the_chunks_bound():
 
 
 def test_training_logs_per_window_of_steps_by_hand(tmp_path):
-    """Signals and evaluations averaged per window of env steps, then over seeds: by hand on two runs."""
+    """Signals and evaluations averaged per window of env steps, then over the seeds that reached it: by hand."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import training_logs
 
     (tmp_path / "logs").mkdir()
     steps = [1000, 2000, 3000, 4000]
-    for seed, (stds, returns) in enumerate((([0.9, 0.8, 0.7, 0.6], [10, 30]), ([0.5, 0.5, 0.3, np.nan], [20, 60]))):
+    runs = (  # stds per logged step, evaluations (steps, returns), the run's length
+        ([0.9, 0.8, 0.7, 0.6], [(1000, 10), (2000, 30), (4000, 30)], 4000),
+        ([0.5, 0.5, 0.3, np.nan], [(2000, 20), (4000, 60)], 4000),
+        ([0.1, 0.1, 0.1, 0.1], [(2000, 1000), (3000, 1000)], 3000),  # ended before the second window's end
+    )
+    for seed, (stds, evaluations, timesteps) in enumerate(runs):
         name = f"Hopper-v5_ppo_seed{seed}.json"
-        curve = [{"timesteps": 2000, "mean_return": returns[0]}, {"timesteps": 4000, "mean_return": returns[1]}]
-        (tmp_path / name).write_text(json.dumps({"variant": "ppo", "curve": curve}))
+        curve = [{"timesteps": t, "mean_return": r} for t, r in evaluations]
+        (tmp_path / name).write_text(json.dumps({"variant": "ppo", "curve": curve, "timesteps": timesteps}))
         logs = {key: [np.nan] * 4 for key in training_logs.KEYS}
         logs.update({"time/total_timesteps": steps, "train/std": stds})
         (tmp_path / "logs" / name).write_text(json.dumps(logs))
-    report = training_logs.window_report(tmp_path, "Hopper-v5", [2000, 4000])
+    report = training_logs.window_report(tmp_path, "Hopper-v5", [4000, 2000, 2000])  # sorted, duplicates dropped
+    header = next(line for line in report.splitlines() if line.startswith("| variant")).split(" | ")
     rows = [line.split(" | ") for line in report.splitlines() if line.startswith("| ppo")]
-    std = 2 + training_logs.KEYS[2:].index("train/std") + 1  # variant, steps, eval return, then the signals
-    # window 1: seed 0 mean(0.9, 0.8) = 0.85, seed 1 0.5 -> 0.675; window 2: 0.65 and 0.3 (NaN left out) -> 0.475
+    # window 1, three seeds: returns mean(10, 30) = 20, 20, 1000 -> 346.7; std 0.85, 0.5, 0.1 -> 0.4833
+    # window 2, the two seeds that reached 4000: returns 30, 60 -> 45; std 0.65, 0.3 (NaN left out) -> 0.475
     assert [row[1] for row in rows] == ["0k-2k", "2k-4k"]
-    assert [row[2] for row in rows] == ["15", "45"]
-    assert [row[std] for row in rows] == ["0.675", "0.475"]
+    assert [row[header.index("seeds")] for row in rows] == ["3", "2"]
+    assert [row[header.index("eval return")] for row in rows] == ["347", "45"]
+    assert [row[header.index("std")] for row in rows] == ["0.483", "0.475"]
+    assert [row[header.index("approx_kl")] for row in rows] == ["nan", "nan"]  # logged by no run
+    assert "2.5k-5k" in training_logs.window_report(tmp_path, "Hopper-v5", [2500, 5000])  # labels keep fractions
+    with pytest.raises(ValueError, match="positive"):
+        training_logs.window_report(tmp_path, "Hopper-v5", [0, 2000])
 
 
-def test_entropy_config_is_the_learning_config_with_an_entropy_bonus():
-    """learning_entropy.yml changes only ent_coef (0.01) from learning.yml, on every task it lists."""
+def test_training_logs_peak_and_fall_by_hand(tmp_path):
+    """Peak, final (last three evaluations), the runs falling > 20 %, and the peak of three-evaluation means."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import training_logs
+
+    for seed, returns in enumerate(([10, 100, 20, 30, 40], [50, 60, 70])):
+        curve = [{"timesteps": 10_000 * (i + 1), "mean_return": r} for i, r in enumerate(returns)]
+        (tmp_path / f"Hopper-v5_ppo_seed{seed}.json").write_text(json.dumps({"variant": "ppo", "curve": curve}))
+    report = training_logs.report(tmp_path, "Hopper-v5")
+    row = next(line for line in report.splitlines() if line.startswith("| ppo")).split(" | ")
+    # peaks 100 and 70 (at 20k and 30k), finals 30 and 60, smoothed peaks mean(100, 20, 30) = 50 and 60
+    assert row[1:] == ["2", "85", "25k", "45", "-47 %", "1 of 2", "55", "-18 % |"]
+
+
+@pytest.mark.parametrize(
+    "name, key, base_value, value",
+    [("learning_entropy.yml", "ent_coef", 0.0, 0.01), ("learning_lr_linear.yml", "learning_rate", 3e-4, "lin_0.0003")],
+)
+def test_fall_test_configs_change_one_hyperparameter_of_the_learning_config(name, key, base_value, value):
+    """Issue 13's tests of the fall change one PPO hyperparameter of learning.yml, for both algorithms, on every task."""
     base = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning.yml").read_text())
-    entropy = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning_entropy.yml").read_text())
-    assert {"Hopper-v5", "Walker2d-v5"} <= set(entropy)
-    for env_id, entry in entropy.items():
-        assert entry["ent_coef"] == 0.01, env_id
-        assert {**entry, "ent_coef": base[env_id]["ent_coef"]} == base[env_id], env_id
+    changed = yaml.safe_load((ROOT / "benchmarks/hyperparams" / name).read_text())
+    assert {"Hopper-v5", "Walker2d-v5"} <= set(changed)
+    for env_id, entry in changed.items():
+        assert base[env_id][key] == base_value and entry[key] == value, env_id
+        assert {**entry, key: base[env_id][key]} == base[env_id], env_id
