@@ -6,7 +6,8 @@ for one env reports per variant, mean over seeds:
 
 - the evaluation curve's peak (max average return), the final return (mean of the last three evaluations) and the
   drop between them, and where the peak came; the same drop from the best mean of three consecutive evaluations
-  (a maximum over many noisy evaluations is biased upwards: this drop is the part that the noise does not explain);
+  (a maximum over many noisy evaluations is biased upwards: this drop is the part that the noise does not explain),
+  and how far one evaluation swings from the next late in the run;
 - training signals before and after the peak: the on-policy critic's explained variance and value loss, the
   critic's loss on historical samples, the policy's KL per update, its std, and what tells whether the critic can
   tell policies apart (saturated embedding units, ``||dV/dchi||``);
@@ -105,14 +106,16 @@ def report(out: pathlib.Path, env_id: str) -> str:
     """Markdown: the peak and the fall per variant, and each signal averaged before and after the peak."""
     lines = [
         f"**{env_id}**: peak and fall (mean over seeds; final = mean of the last three evaluations; smoothed peak = "
-        "the best mean of three consecutive evaluations, the peak without the luck of one evaluation)",
+        "the best mean of three consecutive evaluations, the peak without the luck of one evaluation; swing = the mean "
+        "absolute change from one evaluation to the next over the second half of the run)",
         "",
-        "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % | smoothed peak | fall from it |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % "
+        "| smoothed peak | fall from it | swing |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     phase_rows = []
     for variant, runs in runs_of(out, env_id).items():
-        peaks, finals, peak_steps, falls, smoothed = [], [], [], 0, []
+        peaks, finals, peak_steps, falls, smoothed, swings = [], [], [], 0, [], []
         before = {key: [] for key in SIGNALS}
         after = {key: [] for key in SIGNALS}
         for result, logs in runs:
@@ -122,6 +125,7 @@ def report(out: pathlib.Path, env_id: str) -> str:
             peak, final = returns.max(), returns[-3:].mean()
             peaks.append(peak), finals.append(final), peak_steps.append(steps[returns.argmax()])
             smoothed.append(np.convolve(returns, np.ones(3) / 3, mode="valid").max() if len(returns) >= 3 else final)
+            swings.append(np.abs(np.diff(returns[len(returns) // 2 :])).mean() if len(returns) >= 4 else np.nan)
             falls += final < 0.8 * peak
             for key in SIGNALS:
                 before[key].append(window_mean(logs, key, 0, steps[returns.argmax()]))
@@ -129,7 +133,7 @@ def report(out: pathlib.Path, env_id: str) -> str:
         lines.append(
             f"| {variant} | {len(runs)} | {np.mean(peaks):.0f} | {np.mean(peak_steps) / 1000:.0f}k | {np.mean(finals):.0f} | "
             f"{(np.mean(finals) / np.mean(peaks) - 1) * 100:+.0f} % | {falls} of {len(runs)} | {np.mean(smoothed):.0f} | "
-            f"{(np.mean(finals) / np.mean(smoothed) - 1) * 100:+.0f} % |"
+            f"{(np.mean(finals) / np.mean(smoothed) - 1) * 100:+.0f} % | {finite_mean(swings):.0f} |"
         )
         cells = [f"{finite_mean(before[key]):.3g} / {finite_mean(after[key]):.3g}" for key in SIGNALS]
         phase_rows.append(f"| {variant} | " + " | ".join(cells) + " |")
