@@ -6,8 +6,9 @@ for one env reports per variant, mean over seeds:
 
 - the evaluation curve's peak (max average return), the final return (mean of the last three evaluations) and the
   drop between them, and where the peak came; the same drop from the best mean of three consecutive evaluations
-  (a maximum over many noisy evaluations is biased upwards: this drop is the part that the noise does not explain),
-  and how far one evaluation swings from the next late in the run;
+  (a maximum over an oscillating curve is biased upwards: this drop is the sustained part), and how far one
+  evaluation swings from the next late in the run against one evaluation's standard error (the policy's change
+  against the evaluation's noise);
 - training signals before and after the peak: the on-policy critic's explained variance and value loss, the
   critic's loss on historical samples, the policy's KL per update, its std, and what tells whether the critic can
   tell policies apart (saturated embedding units, ``||dV/dchi||``);
@@ -102,38 +103,64 @@ def finite_mean(values: list[float]) -> float:
     return float(np.mean(finite)) if finite else float("nan")
 
 
+def curve_stats(result: dict) -> dict[str, float]:
+    """One run's evaluation curve: its peak (and where), its final return (the last three evaluations), the best mean
+    of three consecutive evaluations (NaN under three), and over the curve's second half (NaN under four
+    evaluations) the mean absolute change from one evaluation to the next and the standard error of one evaluation
+    (``std / sqrt(episodes)``): a swing far above that error is the policy changing, not the evaluation's noise."""
+    curve = result["curve"]
+    returns = np.array([point["mean_return"] for point in curve])
+    late = result.get("episode_returns", [])[len(curve) // 2 :]  # each evaluation's episodes, where recorded
+    errors = [np.std(episodes) / np.sqrt(len(episodes)) for episodes in late if len(episodes)]
+    return {
+        "peak": returns.max(),
+        "peak_step": curve[int(returns.argmax())]["timesteps"],
+        "final": returns[-3:].mean(),
+        "smoothed": np.convolve(returns, np.ones(3) / 3, mode="valid").max() if len(returns) >= 3 else np.nan,
+        "swing": np.abs(np.diff(returns[len(returns) // 2 :])).mean() if len(returns) >= 4 else np.nan,
+        "error": np.mean(errors) if errors and len(returns) >= 4 else np.nan,
+    }
+
+
+def percent(ratio: float) -> str:
+    """``ratio - 1`` as a signed whole percentage ("0 %" for what rounds to zero, NaN as "nan")."""
+    if not np.isfinite(ratio):
+        return "nan"
+    change = round((ratio - 1) * 100)
+    return f"{change:+d} %" if change else "0 %"
+
+
 def report(out: pathlib.Path, env_id: str) -> str:
     """Markdown: the peak and the fall per variant, and each signal averaged before and after the peak."""
     lines = [
         f"**{env_id}**: peak and fall (mean over seeds; final = mean of the last three evaluations; smoothed peak = "
-        "the best mean of three consecutive evaluations, the peak without the luck of one evaluation; swing = the mean "
-        "absolute change from one evaluation to the next over the second half of the run)",
+        "the best mean of three consecutive evaluations, over the runs with three; swing = the mean absolute change "
+        "from one evaluation to the next over the second half of the run; eval s.e. = one evaluation's standard "
+        "error there)",
         "",
         "| variant | seeds | peak | at step (mean) | final | fall | runs falling > 20 % "
-        "| smoothed peak | fall from it | swing |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| smoothed peak | fall from it | swing | eval s.e. |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     phase_rows = []
     for variant, runs in runs_of(out, env_id).items():
-        peaks, finals, peak_steps, falls, smoothed, swings = [], [], [], 0, [], []
+        stats = [curve_stats(result) for result, _ in runs]
         before = {key: [] for key in SIGNALS}
         after = {key: [] for key in SIGNALS}
-        for result, logs in runs:
-            curve = result["curve"]
-            returns = np.array([point["mean_return"] for point in curve])
-            steps = np.array([point["timesteps"] for point in curve])
-            peak, final = returns.max(), returns[-3:].mean()
-            peaks.append(peak), finals.append(final), peak_steps.append(steps[returns.argmax()])
-            smoothed.append(np.convolve(returns, np.ones(3) / 3, mode="valid").max() if len(returns) >= 3 else final)
-            swings.append(np.abs(np.diff(returns[len(returns) // 2 :])).mean() if len(returns) >= 4 else np.nan)
-            falls += final < 0.8 * peak
+        for (_, logs), run in zip(runs, stats):
             for key in SIGNALS:
-                before[key].append(window_mean(logs, key, 0, steps[returns.argmax()]))
-                after[key].append(window_mean(logs, key, steps[returns.argmax()], np.inf))
+                before[key].append(window_mean(logs, key, 0, run["peak_step"]))
+                after[key].append(window_mean(logs, key, run["peak_step"], np.inf))
+        mean = {key: np.mean([run[key] for run in stats]) for key in ("peak", "peak_step", "final")}
+        smoothed = [(run["smoothed"], run["final"]) for run in stats if np.isfinite(run["smoothed"])]
+        smoothed_peak = np.mean([peak for peak, _ in smoothed]) if smoothed else np.nan
+        smoothed_fall = np.mean([final for _, final in smoothed]) / smoothed_peak if smoothed else np.nan
+        falls = sum(run["final"] < 0.8 * run["peak"] for run in stats)
         lines.append(
-            f"| {variant} | {len(runs)} | {np.mean(peaks):.0f} | {np.mean(peak_steps) / 1000:.0f}k | {np.mean(finals):.0f} | "
-            f"{(np.mean(finals) / np.mean(peaks) - 1) * 100:+.0f} % | {falls} of {len(runs)} | {np.mean(smoothed):.0f} | "
-            f"{(np.mean(finals) / np.mean(smoothed) - 1) * 100:+.0f} % | {finite_mean(swings):.0f} |"
+            f"| {variant} | {len(runs)} | {mean['peak']:.0f} | {mean['peak_step'] / 1000:.0f}k | {mean['final']:.0f} | "
+            f"{percent(mean['final'] / mean['peak'])} | {falls} of {len(runs)} | {smoothed_peak:.0f} | "
+            f"{percent(smoothed_fall)} | {finite_mean([run['swing'] for run in stats]):.0f} | "
+            f"{finite_mean([run['error'] for run in stats]):.0f} |"
         )
         cells = [f"{finite_mean(before[key]):.3g} / {finite_mean(after[key]):.3g}" for key in SIGNALS]
         phase_rows.append(f"| {variant} | " + " | ".join(cells) + " |")
@@ -154,7 +181,8 @@ def header(first: list[str]) -> list[str]:
 
 
 def thousands(steps: int) -> str:
-    return f"{steps / 1000:g}k"
+    """Env steps as "20k", "2.5k", "1M"."""
+    return f"{steps / 1e6:g}M" if steps >= 1_000_000 else f"{steps / 1000:g}k"
 
 
 def window_report(out: pathlib.Path, env_id: str, edges: list[int]) -> str:

@@ -301,18 +301,37 @@ def test_training_logs_per_window_of_steps_by_hand(tmp_path):
 
 
 def test_training_logs_peak_and_fall_by_hand(tmp_path):
-    """Peak, final (last three evaluations), the runs falling > 20 %, and the peak of three-evaluation means."""
+    """Peak, final (last three evaluations), the runs falling > 20 %, the best mean of three consecutive evaluations
+    (over the runs with three), the swing from one evaluation to the next over the second half and one evaluation's
+    standard error there."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import training_logs
 
-    for seed, returns in enumerate(([10, 100, 20, 30, 40], [50, 60, 70])):
+    runs = (
+        [10, 100, 20, 30, 40, 61],  # second half [30, 40, 61]: swing mean(10, 21) = 15.5
+        [0, 60, 0, 60, 30],  # second half [0, 60, 30]: swing mean(60, 30) = 45
+        [50, 70, 64],  # a smoothed peak, too short for a swing
+        [50, 70],  # too short for either
+    )
+    for seed, returns in enumerate(runs):
         curve = [{"timesteps": 10_000 * (i + 1), "mean_return": r} for i, r in enumerate(returns)]
-        (tmp_path / f"Hopper-v5_ppo_seed{seed}.json").write_text(json.dumps({"variant": "ppo", "curve": curve}))
+        spread = 10 * (seed + 1)  # two episodes r -+ spread: std spread, standard error spread / sqrt 2
+        episodes = [[r - spread, r + spread] for r in returns]
+        result = {"variant": "ppo", "curve": curve, "episode_returns": episodes}
+        (tmp_path / f"Hopper-v5_ppo_seed{seed}.json").write_text(json.dumps(result))
     report = training_logs.report(tmp_path, "Hopper-v5")
-    row = next(line for line in report.splitlines() if line.startswith("| ppo")).split(" | ")
-    # peaks 100 and 70 (at 20k and 30k), finals 30 and 60, smoothed peaks mean(100, 20, 30) = 50 and 60; swings over
-    # the second half: mean(|30 - 20|, |40 - 30|) = 10 for the first run, the second has too few evaluations
-    assert row[1:] == ["2", "85", "25k", "45", "-47 %", "1 of 2", "55", "-18 %", "10 |"]
+    header = next(line for line in report.splitlines() if line.startswith("| variant | seeds")).split(" | ")
+    row = dict(zip(header, next(line for line in report.splitlines() if line.startswith("| ppo")).split(" | ")))
+    # peaks 100, 60, 70, 70 (mean 75) at 20k; finals 43.67, 30, 61.33, 60 (mean 48.75)
+    assert [row["seeds"], row["peak"], row["at step (mean)"], row["final"]] == ["4", "75", "20k", "49"]
+    assert [row["fall"], row["runs falling > 20 %"]] == ["-35 %", "2 of 4"]
+    # smoothed peaks of the first three: mean(100, 20, 30) = 50, mean(60, 0, 60) = 40, 61.33 (mean 50.44); their
+    # finals' mean 45: -11 %
+    assert [row["smoothed peak"], row["fall from it"]] == ["50", "-11 %"]
+    # swings 15.5 and 45 (mean 30.25); standard errors 10 / sqrt 2 and 20 / sqrt 2 (mean 10.6), runs of four or more
+    assert [row["swing"], row["eval s.e. |"]] == ["30", "11 |"]
+    assert training_logs.percent(1.0001) == "0 %" and training_logs.percent(0.9) == "-10 %"
+    assert training_logs.thousands(1_000_000) == "1M" and training_logs.thousands(2500) == "2.5k"
 
 
 @pytest.mark.parametrize(
@@ -320,7 +339,8 @@ def test_training_logs_peak_and_fall_by_hand(tmp_path):
     [("learning_entropy.yml", "ent_coef", 0.0, 0.01), ("learning_lr_linear.yml", "learning_rate", 3e-4, "lin_0.0003")],
 )
 def test_fall_test_configs_change_one_hyperparameter_of_the_learning_config(name, key, base_value, value):
-    """Issue 13's tests of the fall change one PPO hyperparameter of learning.yml, for both algorithms, on every task."""
+    """Issue 13's tests of the fall change one PPO hyperparameter of learning.yml, for both algorithms, on each task
+    they list."""
     base = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning.yml").read_text())
     changed = yaml.safe_load((ROOT / "benchmarks/hyperparams" / name).read_text())
     assert {"Hopper-v5", "Walker2d-v5"} <= set(changed)
