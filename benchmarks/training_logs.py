@@ -109,16 +109,17 @@ def curve_stats(result: dict) -> dict[str, float]:
     evaluations) the mean absolute change from one evaluation to the next and the standard error of one evaluation
     (``std / sqrt(episodes)``): a swing far above that error is the policy changing, not the evaluation's noise."""
     curve = result["curve"]
-    returns = np.array([point["mean_return"] for point in curve])
-    late = result.get("episode_returns", [])[len(curve) // 2 :]  # each evaluation's episodes, where recorded
+    returns, half = np.array([point["mean_return"] for point in curve]), len(curve) // 2
+    late = result.get("episode_returns", [])[half:]  # each evaluation's episodes, where recorded
     errors = [np.std(episodes) / np.sqrt(len(episodes)) for episodes in late if len(episodes)]
+    long_enough = len(returns) >= 4
     return {
         "peak": returns.max(),
         "peak_step": curve[int(returns.argmax())]["timesteps"],
         "final": returns[-3:].mean(),
         "smoothed": np.convolve(returns, np.ones(3) / 3, mode="valid").max() if len(returns) >= 3 else np.nan,
-        "swing": np.abs(np.diff(returns[len(returns) // 2 :])).mean() if len(returns) >= 4 else np.nan,
-        "error": np.mean(errors) if errors and len(returns) >= 4 else np.nan,
+        "swing": np.abs(np.diff(returns[half:])).mean() if long_enough else np.nan,
+        "error": np.mean(errors) if errors and long_enough else np.nan,
     }
 
 
