@@ -1,0 +1,498 @@
+"""Learning campaigns as resumable Optuna studies: one study per campaign, a grid of task x variant x seed
+(``GridSampler``), one training per trial.
+
+Every trial stores, as user attributes, its evaluation curve (env steps, mean and std of the evaluation returns, the
+training's CPU and wall-clock seconds at each evaluation), its CPU and wall-clock seconds (evaluation apart), env steps
+per CPU-second, the package's commit and the versions of torch, SB3, gymnasium and mujoco. The report
+(``campaign_report.py``) reads the storage alone.
+
+Storage: a JournalStorage file per campaign, ``benchmarks/campaigns/<campaign>.journal``, committed with the
+repository, so a campaign resumes from git on any machine; ``--storage postgresql://...`` (any SQLAlchemy URL) lets
+any number of machines pull trials from one database, with Optuna's heartbeat failing the trials of dead workers and
+``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials whose
+worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each again;
+a trial stopped by SIGINT/SIGTERM is enqueued again too. A trial whose training raised stays failed (the report lists
+it). A task, variant and seed counts once in the report, however often it ran.
+
+    # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
+    nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &
+    python benchmarks/campaign.py status --campaign table1
+    # many machines: one database, the same command on each
+    python benchmarks/campaign.py run --campaign table1 --workers 16 --storage postgresql://user:pw@host/db
+    # a campaign of your own (its definition is stored in the study on creation)
+    python benchmarks/campaign.py run --campaign mine --protocol sb3 --tasks Hopper-v5 --variants ppo opr \
+        --seeds 0 1 --timesteps 300000
+"""
+
+import argparse
+import dataclasses
+import functools
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+import warnings
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import optuna
+import stable_baselines3 as sb3
+import torch as th
+from optuna.storages import JournalStorage, RDBStorage
+from optuna.storages.journal import JournalFileBackend
+from optuna.trial import FrozenTrial, TrialState
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.protocols import paper_protocol
+
+try:  # Optuna >= 4.9's name of the callback that enqueues a failed trial again
+    from optuna.storages import RetryHeartbeatStaleTrialCallback
+except ImportError:  # pragma: no cover
+    from optuna.storages import RetryFailedTrialCallback as RetryHeartbeatStaleTrialCallback
+
+warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CAMPAIGN_DIR = ROOT / "benchmarks" / "campaigns"
+#: The six tasks of the paper's Table 1 in today's versions (the paper: -v1 tasks of gym 0.9.1, LunarLander-v2)
+TABLE1_TASKS = (
+    "HalfCheetah-v5",
+    "Hopper-v5",
+    "Walker2d-v5",
+    "Ant-v5",
+    "InvertedDoublePendulum-v5",
+    "LunarLanderContinuous-v3",
+)
+#: A retried trial is enqueued again at most this many times
+MAX_RETRY = 3
+#: The evaluation env of seed s is seeded with s + this (the training env with s)
+EVAL_SEED_OFFSET = 10_000
+#: Today's cheaper schedule of historical updates (PPOPeVFA's defaults): 256 samples of 8 policies per 40 steps
+DEFAULT_SCHEDULE = dict(history_batch_size=256, history_batch_policies=8, history_train_freq=40, rollout_encoder_gradient=None)
+
+#: protocol -> variant -> PPOPeVFA constructor arguments (None: SB3's PPO with its defaults)
+VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
+    "paper": {
+        "ppo": paper_protocol("ppo"),
+        "opr-e2e": paper_protocol("ppo_pevfa"),
+        "opr-e2e-default-schedule": paper_protocol("ppo_pevfa", **DEFAULT_SCHEDULE),
+        "random": paper_protocol("ppo_pevfa", representation="random"),
+        "opr-cl": paper_protocol("ppo_pevfa", representation_objectives=("cl",)),
+        "spr-e2e": paper_protocol("ppo_pevfa", representation="spr"),
+    },
+    "sb3": {
+        "ppo": None,
+        "opr": {},
+        "spr": dict(representation="spr"),
+    },
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Campaign:
+    """A grid of trainings: every task x variant x seed, ``timesteps`` each, evaluated every ``eval_freq`` steps
+    over ``eval_episodes`` deterministic episodes."""
+
+    protocol: str
+    tasks: tuple[str, ...]
+    variants: tuple[str, ...]
+    seeds: tuple[int, ...]
+    timesteps: int
+    eval_freq: int = 20_000
+    eval_episodes: int = 10
+
+    def __post_init__(self) -> None:
+        if self.protocol not in VARIANTS:
+            raise ValueError(f"Unknown protocol {self.protocol!r}, valid choices: {sorted(VARIANTS)}")
+        unknown = sorted(set(self.variants) - set(VARIANTS[self.protocol]))
+        if unknown:
+            raise ValueError(
+                f"Unknown variants {unknown} of protocol {self.protocol!r}, valid: {sorted(VARIANTS[self.protocol])}"
+            )
+        if not (self.tasks and self.variants and self.seeds):
+            raise ValueError("A campaign needs at least one task, one variant and one seed")
+        if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0:
+            raise ValueError("timesteps, eval_freq and eval_episodes must be positive")
+
+    @property
+    def search_space(self) -> dict[str, list]:
+        return {"task": list(self.tasks), "variant": list(self.variants), "seed": list(self.seeds)}
+
+    @property
+    def grid(self) -> list[tuple[str, str, int]]:
+        return [(t, v, s) for t in self.tasks for v in self.variants for s in self.seeds]
+
+    def definition(self) -> dict[str, Any]:
+        """What the study stores: the grid and, per variant, its constructor arguments as text."""
+        settings = {variant: repr(VARIANTS[self.protocol][variant]) for variant in self.variants}
+        return {**dataclasses.asdict(self), "tasks": list(self.tasks), "variants": list(self.variants),
+                "seeds": list(self.seeds), "settings": settings}  # fmt: skip
+
+    @classmethod
+    def from_definition(cls, definition: dict[str, Any]) -> "Campaign":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in definition.items() if k in fields}
+        return cls(**values)
+
+
+#: The campaigns of this repository, in the order the Table-1 reproduction runs them
+CAMPAIGNS: dict[str, Campaign] = {
+    # (a) the paper's PPO vs PPO-PeVFA OPR-E2E with the paper's schedule of historical updates
+    "table1": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5)), 1_000_000),
+    # (b) PPO-PeVFA with today's default schedule of historical updates, in the same protocol
+    "table1-default-schedule": Campaign("paper", TABLE1_TASKS, ("opr-e2e-default-schedule",), tuple(range(5)), 1_000_000),
+    # (c) the other representations and objectives, then five more seeds
+    "table1-variants": Campaign("paper", TABLE1_TASKS, ("random", "opr-cl", "spr-e2e"), tuple(range(5)), 1_000_000),
+    "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
+}
+
+
+# ---------------------------------------------------------------------------------------------- one training
+class CurveCallback(BaseCallback):
+    """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` deterministic episodes (SB3's
+    ``evaluate_policy``), records the training's CPU and wall-clock seconds so far (evaluations excluded), and reports
+    the mean return to the Optuna trial, with a heartbeat."""
+
+    def __init__(self, eval_env: VecEnv, trial: optuna.Trial | None, eval_freq: int, n_eval_episodes: int):
+        super().__init__()
+        self.eval_env, self.trial, self.eval_freq, self.n_eval_episodes = eval_env, trial, eval_freq, n_eval_episodes
+        self.curve: dict[str, list[float]] = {"steps": [], "mean": [], "std": [], "cpu_s": [], "wall_s": []}
+        self.eval_cpu = self.eval_wall = 0.0
+        self.start_cpu, self.start_wall = time.process_time(), time.perf_counter()
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.eval_freq:
+            return True
+        cpu, wall = time.process_time(), time.perf_counter()
+        train_cpu, train_wall = cpu - self.start_cpu - self.eval_cpu, wall - self.start_wall - self.eval_wall
+        returns, _ = evaluate_policy(self.model, self.eval_env, self.n_eval_episodes, return_episode_rewards=True)
+        self.eval_cpu += time.process_time() - cpu
+        self.eval_wall += time.perf_counter() - wall
+        returns = np.asarray(returns, dtype=float)
+        point = (self.num_timesteps, float(returns.mean()), float(returns.std()), train_cpu, train_wall)
+        for key, value in zip(self.curve, point):
+            self.curve[key].append(value)
+        if self.trial is not None:
+            self.trial.report(point[1], self.num_timesteps)
+            self.trial.set_user_attr("heartbeat", time.time())
+            self.trial.set_user_attr("progress", {"steps": self.num_timesteps, "cpu_s": train_cpu, "wall_s": train_wall})
+        return True
+
+
+def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
+    """The model of one grid point (``VARIANTS``)."""
+    arguments = VARIANTS[protocol][variant]
+    if arguments is None:
+        return PPO("MlpPolicy", env, seed=seed)
+    return PPOPeVFA("MlpPolicy", env, seed=seed, **arguments)
+
+
+def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None) -> dict[str, Any]:
+    """Train one grid point with evaluations; returns what the trial stores."""
+    th.set_num_threads(1)
+    env = make_vec_env(task, n_envs=1, seed=seed)
+    eval_env = make_vec_env(task, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
+    with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
+        warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
+        model = make_model(campaign.protocol, variant, env, seed)
+    callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes)
+    model.learn(campaign.timesteps, callback=callback)
+    cpu = time.process_time() - callback.start_cpu - callback.eval_cpu
+    wall = time.perf_counter() - callback.start_wall - callback.eval_wall
+    curve = callback.curve
+    env.close()
+    eval_env.close()
+    return {
+        "curve": curve,
+        "max_average_return": max(curve["mean"]),
+        "final_return": curve["mean"][-1],
+        "timesteps": int(model.num_timesteps),
+        "cpu_seconds": cpu,
+        "wall_seconds": wall,
+        "eval_cpu_seconds": callback.eval_cpu,
+        "eval_wall_seconds": callback.eval_wall,
+        "steps_per_cpu_second": model.num_timesteps / cpu,
+        "steps_per_wall_second": model.num_timesteps / wall,
+        **provenance(),
+    }
+
+
+@functools.cache
+def provenance() -> dict[str, Any]:
+    """The package's commit when this process started (``+dirty`` with uncommitted changes), the library versions and
+    the machine."""
+
+    def git(*args: str) -> str:
+        result = subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT)
+        return result.stdout.strip() if result.returncode == 0 else "unknown"
+
+    commit = git("rev-parse", "--short", "HEAD")
+    if git("status", "--porcelain", "--untracked-files=no", "--", "sb3_pevfa", "benchmarks/campaign.py"):
+        commit += "+dirty"
+    versions = {"torch": th.__version__, "stable_baselines3": sb3.__version__, "gymnasium": gym.__version__,
+                "mujoco": mujoco.__version__, "optuna": optuna.__version__, "python": sys.version.split()[0]}  # fmt: skip
+    return {"commit": commit, "versions": versions, "machine": f"{socket.gethostname()} ({os.cpu_count()} CPUs)"}
+
+
+# ---------------------------------------------------------------------------------------------- storage and study
+def storage_of(campaign: str, storage: str | None = None) -> optuna.storages.BaseStorage:
+    """``storage``: a database URL (``postgresql://...``, ``sqlite:///...``), a journal file's path, or None for
+    ``benchmarks/campaigns/<campaign>.journal``."""
+    if storage and "://" in storage:
+        return RDBStorage(storage, heartbeat_interval=60, grace_period=600,
+                          failed_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY))  # fmt: skip
+    path = pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{campaign}.journal"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return JournalStorage(JournalFileBackend(str(path)))
+
+
+def open_study(
+    name: str, storage: optuna.storages.BaseStorage, given: Campaign | None = None
+) -> tuple[optuna.Study, Campaign]:
+    """The campaign's study, created with ``given`` (or this file's ``CAMPAIGNS[name]``) and its definition stored;
+    a stored campaign is never redefined: a different definition is a ValueError."""
+    existing = {summary.study_name for summary in optuna.get_all_study_summaries(storage)}
+    expected = given or CAMPAIGNS.get(name)
+    if name in existing:
+        study = optuna.load_study(study_name=name, storage=storage)
+        campaign = Campaign.from_definition(study.user_attrs["campaign"])
+        if expected is not None and expected.definition() != study.user_attrs["campaign"]:
+            raise ValueError(
+                f"Campaign {name!r} was started as {study.user_attrs['campaign']}, and is now given as "
+                f"{expected.definition()}: a campaign's protocol never changes; start one under another name"
+            )
+    else:
+        if expected is None:
+            raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give --protocol, --tasks, "
+                             "--variants, --seeds and --timesteps to define a new one")  # fmt: skip
+        campaign = expected
+        study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
+        study.set_user_attr("campaign", campaign.definition())
+    study.sampler = optuna.samplers.GridSampler(campaign.search_space, seed=0)
+    return study, campaign
+
+
+def grid_point(trial: FrozenTrial) -> tuple[str, str, int] | None:
+    params = trial.params or trial.system_attrs.get("fixed_params", {})
+    return (params["task"], params["variant"], params["seed"]) if {"task", "variant", "seed"} <= set(params) else None
+
+
+def grid_states(study: optuna.Study, campaign: Campaign) -> dict[tuple[str, str, int], list[FrozenTrial]]:
+    """Every grid point's trials, in order."""
+    states: dict[tuple[str, str, int], list[FrozenTrial]] = {point: [] for point in campaign.grid}
+    for trial in study.get_trials(deepcopy=False):
+        point = grid_point(trial)
+        if point in states:
+            states[point].append(trial)
+    return states
+
+
+def _interrupted(trial: FrozenTrial) -> bool:
+    return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted"))
+
+
+def _alive(worker: dict[str, Any], stale_after: float, heartbeat: float | None) -> bool:
+    """Whether the worker of a RUNNING trial still runs: its process on this machine, else a recent heartbeat."""
+    if worker.get("host") == socket.gethostname() and worker.get("boot_id") == _boot_id():
+        try:
+            cmdline = pathlib.Path(f"/proc/{worker['pid']}/cmdline").read_bytes()
+        except OSError:
+            return False
+        return b"campaign" in cmdline
+    return heartbeat is not None and time.time() - heartbeat < stale_after
+
+
+def _boot_id() -> str:
+    try:
+        return pathlib.Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0) -> list[int]:
+    """Fail the RUNNING trials of dead workers (journal storage; a database's heartbeat does it there) and enqueue
+    each grid point whose latest trial was interrupted or stale again, at most ``MAX_RETRY`` times.
+    Returns the numbers of the trials retried."""
+    storage = study._storage
+    retry = RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)
+    retried = []
+    for trials in grid_states(study, campaign).values():
+        if not trials or any(t.state in (TrialState.COMPLETE, TrialState.WAITING) for t in trials):
+            continue
+        latest = trials[-1]
+        if latest.state == TrialState.RUNNING and not isinstance(storage, RDBStorage):
+            started = latest.datetime_start.timestamp() if latest.datetime_start else None
+            heartbeat = latest.user_attrs.get("heartbeat", started)
+            if _alive(latest.user_attrs.get("worker", {}), stale_after, heartbeat):
+                continue
+            storage.set_trial_user_attr(latest._trial_id, "interrupted", "worker gone")
+            storage.set_trial_state_values(latest._trial_id, TrialState.FAIL)
+            latest = storage.get_trial(latest._trial_id)
+        if _interrupted(latest) and len(latest.system_attrs.get("retry_history", [])) < MAX_RETRY:
+            retry(study, latest)
+            retried.append(latest.number)
+    return retried
+
+
+def pending(study: optuna.Study, campaign: Campaign) -> int:
+    """Grid points that no worker has started and that wait for one (never run, or enqueued again)."""
+    count = 0
+    for trials in grid_states(study, campaign).values():
+        if not trials or any(t.state == TrialState.WAITING for t in trials):
+            count += 1
+    return count
+
+
+def done(study: optuna.Study, campaign: Campaign) -> int:
+    """Grid points with a complete trial."""
+    return sum(any(t.state == TrialState.COMPLETE for t in trials) for trials in grid_states(study, campaign).values())
+
+
+# ---------------------------------------------------------------------------------------------- workers
+def objective(campaign: Campaign):
+    def run_trial(trial: optuna.Trial) -> float:
+        task = trial.suggest_categorical("task", list(campaign.tasks))
+        variant = trial.suggest_categorical("variant", list(campaign.variants))
+        seed = trial.suggest_categorical("seed", list(campaign.seeds))
+        trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": _boot_id(), "pid": os.getpid()})
+        trial.set_user_attr("heartbeat", time.time())
+        try:
+            result = train(campaign, task, variant, seed, trial)
+        except (KeyboardInterrupt, SystemExit):
+            trial.set_user_attr("interrupted", "stopped")
+            raise
+        for key, value in result.items():
+            trial.set_user_attr(key, value)
+        return result["max_average_return"]
+
+    return run_trial
+
+
+def work(names: list[str], storage: str | None) -> None:
+    """One worker: trials of the campaigns one after another, each campaign's grid before the next one's."""
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    provenance()  # the code this process runs
+    for name in names:
+        work_on(name, storage)
+
+
+def work_on(name: str, storage: str | None) -> None:
+    study, campaign = open_study(name, storage_of(name, storage))
+    total = len(campaign.grid)
+
+    def announce(study: optuna.Study, trial: FrozenTrial) -> None:
+        task, variant, seed = grid_point(trial)
+        if trial.state == TrialState.COMPLETE:
+            a = trial.user_attrs
+            line = (f"max average return {a['max_average_return']:.1f}, final {a['final_return']:.1f}, "
+                    f"{a['steps_per_cpu_second']:.0f} steps/CPU-s, {a['cpu_seconds'] / 60:.1f} CPU-min "
+                    f"(+{a['eval_cpu_seconds'] / 60:.1f} evaluating), {a['wall_seconds'] / 60:.1f} wall-min")  # fmt: skip
+        else:
+            line = trial.state.name
+        print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
+
+    while pending(study, campaign):
+        study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
+
+
+def run(names: list[str], storage: str | None, workers: int, stale_after: float) -> None:
+    """Recover the trials of dead workers, start ``workers`` worker processes over the campaigns in order and show
+    the grids' progress."""
+    studies = []
+    for name in names:
+        study, campaign = open_study(name, storage_of(name, storage))
+        retried = recover(study, campaign, stale_after)
+        if retried:
+            print(f"{name}: trials {retried} were interrupted or their worker is gone: enqueued again", flush=True)
+        print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete, "
+              f"{pending(study, campaign)} waiting", flush=True)  # fmt: skip
+        studies.append((study, campaign))
+    command = [sys.executable, str(pathlib.Path(__file__).resolve()), "work", "--campaign", *names]
+    command += ["--storage", storage] if storage else []
+    processes = [subprocess.Popen(command) for _ in range(workers)]
+
+    def stop(*_: Any) -> None:
+        for process in processes:
+            process.send_signal(signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, stop)
+    from tqdm import tqdm
+
+    def complete() -> int:
+        return sum(done(study, campaign) for study, campaign in studies)
+
+    total = sum(len(campaign.grid) for _, campaign in studies)
+    with tqdm(total=total, initial=complete(), desc=" ".join(names), unit="trial", disable=None) as bar:
+        while any(process.poll() is None for process in processes):
+            time.sleep(10)
+            bar.update(complete() - bar.n)
+    codes = [process.wait() for process in processes]
+    if any(codes):
+        raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
+
+
+def status(names: list[str], storage: str | None) -> None:
+    for name in names:
+        status_of(name, storage)
+
+
+def status_of(name: str, storage: str | None) -> None:
+    study, campaign = open_study(name, storage_of(name, storage))
+    counts: dict[str, int] = {}
+    for trial in study.get_trials(deepcopy=False):
+        counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
+    print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
+    for (task, variant, seed), trials in grid_states(study, campaign).items():
+        states = " ".join(f"#{t.number}:{t.state.name}" for t in trials) or "-"
+        print(f"  {task:28s} {variant:26s} seed {seed}: {states}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("command", choices=["run", "work", "status"])
+    parser.add_argument("--campaign", nargs="+", required=True,
+                        help=f"campaigns, run in this order: of {sorted(CAMPAIGNS)}, or a new name")  # fmt: skip
+    parser.add_argument("--storage", default=None, help="database URL or journal file (default: benchmarks/campaigns/)")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: the cores)")
+    parser.add_argument("--stale-after", type=float, default=1800.0,
+                        help="journal storage: a RUNNING trial of another machine without a heartbeat for this "
+                             "many seconds is failed and enqueued again (here: once its process is gone)")  # fmt: skip
+    new = parser.add_argument_group("a new campaign's definition (stored in its study when it is created)")
+    new.add_argument("--protocol", choices=sorted(VARIANTS))
+    new.add_argument("--tasks", nargs="+")
+    new.add_argument("--variants", nargs="+")
+    new.add_argument("--seeds", nargs="+", type=int)
+    new.add_argument("--timesteps", type=int)
+    new.add_argument("--eval-freq", type=int, default=20_000)
+    new.add_argument("--eval-episodes", type=int, default=10)
+    args = parser.parse_args(argv)
+    if args.protocol or args.tasks or args.variants or args.seeds or args.timesteps:
+        missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
+        if missing:
+            parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
+        given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
+                         args.eval_freq, args.eval_episodes)  # fmt: skip
+        if len(args.campaign) > 1:
+            parser.error("define one campaign at a time")
+        open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
+    if args.command == "run":
+        run(args.campaign, args.storage, args.workers, args.stale_after)
+    elif args.command == "work":
+        work(args.campaign, args.storage)
+    else:
+        status(args.campaign, args.storage)
+
+
+if __name__ == "__main__":
+    main()
