@@ -5,7 +5,7 @@ default; with the paper's uniform 64-sample batches about 47 once the history ho
 policies on a 2048-step task. The on-policy update encodes one (the behaviour policy) per update, or per minibatch
 with ``rollout_encoder_gradient=True``. One torch thread, the actor of SB3's default MlpPolicy on the task.
 
-    python benchmarks/encoder_cost.py --env Hopper-v5 --out docs/results/encoder_cost_hopper.json
+    python benchmarks/encoder_cost.py --env Hopper-v5 --out docs/results/encoder-cost/encoder_cost_hopper.json
 """
 
 import argparse

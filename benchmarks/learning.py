@@ -7,17 +7,17 @@ rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes`
 ``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses at most the runs in flight,
 and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread each.
 
-    # this machine's budget (docs/benchmarks.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
+    # SB3's defaults (docs/results-sb3-defaults.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4
     # the paper's protocol (Table 1): six tasks, 2M steps (Ant 4M), 10 seeds, all variants
     python benchmarks/learning.py --paper
     # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
-    python benchmarks/learning.py --report --plot docs/results/learning.png
+    python benchmarks/learning.py --report --out runs/learning --plot runs/learning.png
     # runs of several invocations on machines of different speeds: per-second views against each seed's PPO run
-    python benchmarks/learning.py --report --paired --out docs/results/zoo_tuned_freq160
+    python benchmarks/learning.py --report --paired --out docs/results/zoo-tuned/shipped-entries
     # A2C vs A2CPeVFA (SB3's A2C defaults), Hopper-v5, 100k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 --variants a2c a2c-pevfa-opr --timesteps 100000 --eval-freq 10000 \
-        --out docs/results/learning_a2c --baseline a2c --plot docs/results/learning_a2c.png
+        --out docs/results/notes/a2c-pevfa/learning_a2c --baseline a2c --plot docs/results/notes/a2c-pevfa/learning_a2c.png
 """
 
 import argparse
@@ -478,7 +478,7 @@ def main() -> None:
     parser.add_argument("--conf", type=pathlib.Path, default=None, help="rl-zoo3 hyperparameters shared by all variants")
     parser.add_argument("--baseline", default="ppo", choices=list(VARIANTS), help="the variant the report compares to")
     parser.add_argument("--paper", action="store_true", help="the paper's protocol: its six tasks, 2M steps, 10 seeds")
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/learning"))
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
     parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
     parser.add_argument(

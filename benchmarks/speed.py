@@ -10,8 +10,8 @@ what is measured: 6144 steps (3 policies in the history) is the start of a run, 
 its default 200k samples, ~98 policies) is its steady state. Each warm-up is trained once (seed 0) and cached
 under ``--cache`` (model and history); every repeat loads it with a fresh env seeded by the repeat.
 
-    python benchmarks/speed.py --env Hopper-v5 CartPole-v1 --warmup 6144 --repeats 5 --out docs/results/speed
-    python benchmarks/speed.py --env Hopper-v5 CartPole-v1 --warmup 200000 --repeats 5 --out docs/results/speed
+    python benchmarks/speed.py --env Hopper-v5 CartPole-v1 --warmup 6144 --repeats 5 --out runs/speed
+    python benchmarks/speed.py --env Hopper-v5 CartPole-v1 --warmup 200000 --repeats 5 --out runs/speed
 """
 
 import argparse
@@ -92,7 +92,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=6144, help="untimed steps first (historical updates start at 5k)")
     parser.add_argument("--cache", type=pathlib.Path, default=pathlib.Path("runs/speed_cache"), help="warmed-up models")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/results/speed"))
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/speed"))
     args = parser.parse_args()
     th.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)

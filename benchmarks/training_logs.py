@@ -17,8 +17,8 @@ for one env reports per variant, mean over seeds:
   ``high`` (its ``seeds`` column counts them); steps after the last edge are not reported. SB3 dumps an update's
   ``train/*`` values with the next rollout's table, so they are dated up to one rollout (``n_steps``) late.
 
-    python benchmarks/training_logs.py --out docs/results/ablation_targets_critic --env Hopper-v5 \
-        --plot docs/results/ablation_targets_critic_logs.png
+    python benchmarks/training_logs.py --out docs/results/sb3-defaults/ablation --env Hopper-v5 \
+        --plot docs/results/sb3-defaults/ablation_logs.png
 """
 
 import argparse

@@ -1,4 +1,5 @@
-"""The benchmark scripts run end to end at a tiny budget and write what the docs cite (the long runs are not tests)."""
+"""The benchmark scripts, and the research notes' scripts, run end to end at a tiny budget and write what the docs cite
+(the long runs are not tests)."""
 
 import io
 import json
@@ -13,6 +14,7 @@ import yaml
 from stable_baselines3.common.logger import HumanOutputFormat
 
 ROOT = pathlib.Path(__file__).parents[1]
+NOTES = ROOT / "docs" / "notes" / "scripts"  # scripts of one research note each
 
 
 def _run(*args: str, cwd: pathlib.Path) -> str:
@@ -131,7 +133,7 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
     speed = json.loads((tmp_path / "CartPole-v1_warmup512.json").read_text())
     assert len(speed["ppo_steps_per_s"]) == len(speed["pevfa_steps_per_s"]) == 2 and speed["ratio_median"] > 0
     assert set(speed["pevfa_shares"]) >= {"rollout", "on-policy update", "history update"}
-    log = _run(str(ROOT / "benchmarks" / "fast_path.py"), "--algo", "ppo_pevfa", "a2c_pevfa", "--env", "CartPole-v1",
+    log = _run(str(NOTES / "fast_path.py"), "--algo", "ppo_pevfa", "a2c_pevfa", "--env", "CartPole-v1",
                "--warmup", "256", "--repeats", "1", "--rollouts", "1", "--out", str(tmp_path / "fast.json"),
                cwd=ROOT)  # fmt: skip
     fast = json.loads((tmp_path / "fast.json").read_text())
@@ -146,7 +148,7 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
          "--out", str(tmp_path / "encoder.json"), cwd=ROOT)  # fmt: skip
     rows = json.loads((tmp_path / "encoder.json").read_text())["rows"]
     assert {row["representation"] for row in rows} == {"opr", "spr", "rpr", "random", "stats", "none"}
-    _run(str(ROOT / "benchmarks" / "history_memory.py"), "--env", "CartPole-v1", "--steps", "4096", "8192",
+    _run(str(NOTES / "history_memory.py"), "--env", "CartPole-v1", "--steps", "4096", "8192",
          "--out", str(tmp_path / "memory.json"), cwd=ROOT)  # fmt: skip
     memory = json.loads((tmp_path / "memory.json").read_text())["rows"]
     assert memory[0]["mb"] < memory[1]["mb"] and memory[1]["policies"] == 4
@@ -155,14 +157,14 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
 def test_denormals_benchmark_runs_every_variant(tmp_path):
     out, conf = tmp_path / "denormals.json", tmp_path / "conf.yml"
     conf.write_text("CartPole-v1:\n  policy: MlpPolicy\n  n_steps: 64\n  batch_size: 32\n")
-    stdout = _run(str(ROOT / "benchmarks" / "denormals.py"), "--env", "CartPole-v1", "--timesteps", "128", "--conf", str(conf),
-                  "--out", str(out), cwd=ROOT / "benchmarks")  # fmt: skip
+    stdout = _run(str(NOTES / "denormals.py"), "--env", "CartPole-v1", "--timesteps", "128", "--conf", str(conf),
+                  "--out", str(out), cwd=tmp_path)  # fmt: skip
     rows = json.loads(out.read_text())
     assert [r["variant"] for r in rows] == ["ppo", "ppo-flush-denormal", "pevfa", "pevfa-no-flush-denormal"]
     assert all(r["timesteps"] == 128 and r["cpu_s"] > 0 and 0.0 <= r["denormal_fraction"] < 1.0 for r in rows)
     assert "| conf, CartPole-v1, 0k | ppo | 0 |" in stdout
     assert [r["denormal_fraction"] for r in rows if r["variant"] in ("ppo-flush-denormal", "pevfa")] == [0.0, 0.0]
-    report = _run(str(ROOT / "benchmarks" / "denormals.py"), "--report", str(out), str(out), cwd=ROOT / "benchmarks")
+    report = _run(str(NOTES / "denormals.py"), "--report", str(out), str(out), cwd=tmp_path)
     assert "| conf, CartPole-v1, 0k | pevfa | 0, 0 |" in report  # the same runs twice
     assert "the same mean return of their last 100 training episodes: 2 of 2." in report  # one pair per algorithm
 
@@ -198,7 +200,7 @@ def test_profile_benchmark_reads_a_zoo_entry(tmp_path):
 
 def test_history_step_benchmark_times_every_setting(tmp_path):
     stdout = _run(
-        str(ROOT / "benchmarks" / "history_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
+        str(NOTES / "history_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
         "--steps", "2", cwd=tmp_path,
     )  # fmt: skip
     rows = [line.split("|")[1:3] for line in stdout.splitlines() if line.startswith("| ") and "samples" in line]
@@ -211,7 +213,7 @@ def test_history_step_benchmark_times_every_setting(tmp_path):
 
 def test_objective_step_benchmark_times_every_batch(tmp_path):
     stdout = _run(
-        str(ROOT / "benchmarks" / "objective_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
+        str(NOTES / "objective_step.py"), "--env", "CartPole-v1", "--arch", "8", "--policies", "3",
         "--steps", "2", cwd=tmp_path,
     )  # fmt: skip
     rows = [line.split("|")[1:5] for line in stdout.splitlines()[2:] if line.startswith("| ")]  # below the header
@@ -261,7 +263,7 @@ def test_training_logs_parse_sb3s_own_tables():
 
 
 def test_normalize_memory_benchmark_shows_the_chunks_bound():
-    out = _run(str(ROOT / "benchmarks" / "normalize_memory.py"), "--samples", "100000", "--obs-dim", "16", cwd=ROOT)
+    out = _run(str(NOTES / "normalize_memory.py"), "--samples", "100000", "--obs-dim", "16", cwd=ROOT)
     peaks = [float(line.split("peak ")[1].split(" MiB")[0]) for line in out.splitlines()]
     assert len(peaks) == 2 and peaks[1] < peaks[0] / 3  # 16384-row chunks against the whole history at once
 
@@ -339,8 +341,8 @@ def test_training_logs_peak_and_fall_by_hand(tmp_path):
     [("learning_entropy.yml", "ent_coef", 0.0, 0.01), ("learning_lr_linear.yml", "learning_rate", 3e-4, "lin_0.0003")],
 )
 def test_fall_test_configs_change_one_hyperparameter_of_the_learning_config(name, key, base_value, value):
-    """Issue 13's tests of the fall change one PPO hyperparameter of learning.yml, for both algorithms, on each task
-    they list."""
+    """The fall tests' configs change one PPO hyperparameter of learning.yml, for both algorithms, on each task they
+    list."""
     base = yaml.safe_load((ROOT / "benchmarks/hyperparams/learning.yml").read_text())
     changed = yaml.safe_load((ROOT / "benchmarks/hyperparams" / name).read_text())
     assert {"Hopper-v5", "Walker2d-v5"} <= set(changed)

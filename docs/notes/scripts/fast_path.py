@@ -5,10 +5,12 @@ alternately (A B A B, ``--repeats`` times) on the same model: a whole rollout (`
 the actor and the critic at every step; the fast path acts with the actor alone and evaluates the critic once,
 batched, afterwards) and a whole actor-critic update on that rollout (``_train_actor_critic``: SB3's own update on
 both paths since the lean PPO update was removed, so these columns show the measurement's noise; the results of
-commit 083bf99 in docs/results/fast_path.json timed the lean update). Times are ``time.process_time`` of this
-process, one torch thread, reported per environment step (median and spread over the repeats).
+commit 083bf99 in docs/results/notes/fast-path-redesign/fast_path.json timed the lean update). Times are
+``time.process_time`` of this process, one torch thread, reported per environment step (median and spread over the
+repeats).
 
-    python benchmarks/fast_path.py --algo ppo_pevfa a2c_pevfa --env Hopper-v5 CartPole-v1 --out docs/results/fast_path.json
+    python docs/notes/scripts/fast_path.py --algo ppo_pevfa a2c_pevfa --env Hopper-v5 CartPole-v1 \
+        --out docs/results/notes/fast-path-redesign/fast_path.json
 """
 
 import argparse

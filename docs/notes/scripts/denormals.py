@@ -7,27 +7,30 @@ for the whole run here). Each run: CPU time (``time.process_time``) and wall-clo
 one torch thread, the variants of a seed one after the other in this process, and at the end the fraction of
 Adam's moment entries that are denormal (with flushing: 0).
 
-    cd benchmarks
     # rl-zoo3's tuned entries (256x256 ReLU networks, VecNormalize), 60k steps, and SB3's defaults (64x64 Tanh)
-    python denormals.py --conf hyperparams/zoo_tuned.yml --env Hopper-v5 --timesteps 60000 --seeds 0 1 \
-        --out ../docs/results/denormals/tuned_hopper.json
-    python denormals.py --env Hopper-v5 --timesteps 100000 --seeds 0 1 --out ../docs/results/denormals/default_hopper.json
+    python docs/notes/scripts/denormals.py --conf benchmarks/hyperparams/zoo_tuned.yml --env Hopper-v5 \
+        --timesteps 60000 --seeds 0 1 --out docs/results/notes/denormals/tuned_hopper.json
+    python docs/notes/scripts/denormals.py --env Hopper-v5 --timesteps 100000 --seeds 0 1 \
+        --out docs/results/notes/denormals/default_hopper.json
     # one table of several files
-    python denormals.py --report ../docs/results/denormals/*.json
+    python docs/notes/scripts/denormals.py --report docs/results/notes/denormals/*.json
 """
 
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
 import torch as th
-from profile_iteration import zoo_entry
 from stable_baselines3 import PPO
 
 from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.pevfa.denormals import flush_denormals
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[3] / "benchmarks"))
+from profile_iteration import zoo_entry  # benchmarks/profile_iteration.py: an rl-zoo3 entry, built as the zoo does
 
 #: name -> (algorithm, its extra arguments, denormals flushed for the whole run)
 VARIANTS = {

@@ -6,7 +6,7 @@ A PPOPeVFA model with CL on ``--env`` gets a history of ``--policies`` recorded 
 after 5 untimed ones. One 2048-step rollout costs ``2048 / train_freq`` steps: the paper's cadence (10 env steps)
 and PPOPeVFA's default (its historical updates' 40) are tabulated.
 
-    python benchmarks/objective_step.py --env Hopper-v5
+    python docs/notes/scripts/objective_step.py --env Hopper-v5
 """
 
 from history_step import cpu_ms_per_step, history_model, parse_arguments

@@ -4,7 +4,8 @@ The history is filled exactly as PPOPeVFA fills it (one record per update of the
 samples), with the model's default settings; only the environment interaction is skipped, since the footprint depends
 on the counts and shapes alone.
 
-    python benchmarks/history_memory.py --env Hopper-v5 --out docs/results/history_memory.json
+    python docs/notes/scripts/history_memory.py --env Hopper-v5 \
+        --out docs/results/notes/history-memory/history_memory_hopper.json
 """
 
 import argparse

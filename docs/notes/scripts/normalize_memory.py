@@ -5,7 +5,7 @@ historical observation at each refresh. This measures the peak (``tracemalloc``,
 a 200k-sample history of Humanoid-sized observations (348 floats), at once and in chunks of
 ``sb3_pevfa.pevfa.history.NORMALIZE_CHUNK`` rows.
 
-    python benchmarks/normalize_memory.py
+    python docs/notes/scripts/normalize_memory.py
 """
 
 import argparse

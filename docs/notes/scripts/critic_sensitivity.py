@@ -6,7 +6,7 @@ at the behaviour policy: the fraction of embedding-stream units whose activation
 and the norm of chi. Also: the values of the first and the last recorded policy at the same states (how far V moves
 with chi across the whole run).
 
-    python benchmarks/critic_sensitivity.py --out docs/results/critic_sensitivity.json
+    python docs/notes/scripts/critic_sensitivity.py --out docs/results/notes/critic-stream-pilot/critic_sensitivity.json
 """
 
 import argparse

@@ -6,8 +6,8 @@ between records) with 2048 samples each; then each ``(batch size, policies per b
 after 5 untimed ones. "uniform" is the paper's sampling (a batch of 64 from ~47 distinct policies at the
 steady state). Per env step, a setting costs ``ms per update / history_train_freq``.
 
-    python benchmarks/history_step.py --env Hopper-v5 --arch 64 64
-    python benchmarks/history_step.py --env Hopper-v5 --arch 256 256
+    python docs/notes/scripts/history_step.py --env Hopper-v5 --arch 64 64
+    python docs/notes/scripts/history_step.py --env Hopper-v5 --arch 256 256
 """
 
 import argparse
