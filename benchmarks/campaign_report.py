@@ -1,0 +1,296 @@
+"""The report of learning campaigns (``campaign.py``), built from their storage alone (no rerun).
+
+Table 1's layout (max average return, mean +- half a std over seeds, per task and variant, with each variant's
+ratio to the baseline), beside the paper's published values where the protocol is the paper's; the IQM of
+baseline-normalized scores over tasks with stratified bootstrap 95 % CIs, the probability of improvement over the
+baseline and a performance profile; speed (env steps per CPU-second, wall-clock beside) and the best-so-far return
+at the baseline's CPU time; each trial's time and the campaign's expected duration; learning curves per env step
+and per CPU-second (one PNG, a column per task).
+
+    python benchmarks/campaign_report.py --campaign table1 table1-default-schedule --out docs/results/paper-protocol
+"""
+
+import argparse
+import pathlib
+from typing import Any
+
+import aggregate
+import numpy as np
+import optuna
+from campaign import Campaign, grid_states, open_study, storage_of
+from optuna.trial import TrialState
+
+#: The paper's Table 1 (2M steps, 4M for Ant; 10 seeds; mean, half a std): task -> variant -> (mean, half std)
+PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
+    "HalfCheetah-v5": {"ppo": (2621, 259.31), "random": (2470, 291.65), "opr-e2e": (3171, 427.63),
+                       "opr-cl": (3725, 348.55), "spr-e2e": (2774, 233.39)},
+    "Hopper-v5": {"ppo": (1639, 294.47), "random": (1226, 348.10), "opr-e2e": (2085, 310.91),
+                  "opr-cl": (2351, 231.11), "spr-e2e": (2227, 297.35)},
+    "Walker2d-v5": {"ppo": (1505, 320.55), "random": (1269, 209.61), "opr-e2e": (1856, 305.51),
+                    "opr-cl": (2038, 315.51), "spr-e2e": (1930.57, 456.02)},
+    "Ant-v5": {"ppo": (2835, 152.04), "random": (2742, 71.11), "opr-e2e": (3581, 185.43),
+               "opr-cl": (4019, 162.47), "spr-e2e": (3173, 184.75)},
+    "InvertedDoublePendulum-v5": {"ppo": (9344, 11.02), "random": (9355, 0.40), "opr-e2e": (9357, 0.29),
+                                  "opr-cl": (9355, 0.64), "spr-e2e": (9355, 0.89)},
+    "LunarLanderContinuous-v3": {"ppo": (219, 5.33), "random": (226, 2.83), "opr-e2e": (238, 3.37),
+                                 "opr-cl": (239, 3.70), "spr-e2e": (236, 3.13)},
+}  # fmt: skip
+#: How this package's paper protocol differs from the paper's runs
+PAPER_DEVIATIONS = (
+    "Task versions: Gymnasium's -v5 MuJoCo tasks (MuJoCo 3) instead of gym 0.9.1's -v1 (mujoco-py 0.5.4, MJPRO131); "
+    "LunarLanderContinuous-v3 instead of LunarLander-v2 (the paper's continuous-action LunarLander).",
+    "Budget: 1M env steps per run on every task instead of 2M (4M on Ant), and 5 seeds (10 in the paper) until the "
+    "second batch of seeds runs.",
+    "The Gaussian's mean is SB3's linear output, not tanh-activated (SB3's policy classes have no tanh on the mean "
+    "without gSDE); SB3 clips the sampled action to the action space's bounds before the env step.",
+    "An iteration is exactly 2000 env steps (the paper: '5 episodes or 2000 time steps'); the 2000 samples go in "
+    "minibatches of 128, the last of 80.",
+    "Advantages are normalized per minibatch (SB3's default; the paper does not say); Adam's epsilon is SB3's 1e-5; "
+    "weights start from PyTorch's default initialization (no orthogonal initialization).",
+    "Monte-Carlo value targets are the discounted returns to the end of the episode, bootstrapped with the critic "
+    "where the 2000-step rollout cuts an episode or a time limit truncates it.",
+    "Evaluation: every 20k env steps, 10 episodes with the deterministic (mean) action, on a separate env seeded with "
+    "the run's seed + 10000. Max average return = the best of these evaluations.",
+)
+#: Column order of the variants
+ORDER = ("ppo", "random", "opr-e2e", "opr-cl", "spr-e2e", "opr-e2e-default-schedule", "opr", "spr")
+
+
+def collect(
+    names: list[str], storage: str | None
+) -> tuple[dict[str, dict[str, list[dict[str, Any]]]], list[str], list[Campaign]]:
+    """task -> variant -> the completed runs' user attributes (one per seed: a grid point's first complete trial),
+    the notes on failed or duplicated grid points, and the campaigns."""
+    runs: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    notes, campaigns = [], []
+    for name in names:
+        study, campaign = open_study(name, storage_of(name, storage))
+        campaigns.append(campaign)
+        for (task, variant, seed), trials in grid_states(study, campaign).items():
+            complete = [t for t in trials if t.state == TrialState.COMPLETE]
+            if complete:
+                runs.setdefault(task, {}).setdefault(variant, []).append({**complete[0].user_attrs, "seed": seed})
+                if len(complete) > 1:
+                    notes.append(f"{task} {variant} seed {seed} completed {len(complete)} times: the first one counts")
+            elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
+                notes.append(f"{task} {variant} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+    return runs, notes, campaigns
+
+
+def best_so_far_at(run: dict[str, Any], cpu: float) -> float:
+    """The run's best evaluation among those made within ``cpu`` seconds of training CPU (-inf before its first)."""
+    curve = run["curve"]
+    within = [mean for mean, at in zip(curve["mean"], curve["cpu_s"]) if at <= cpu]
+    return max(within) if within else -np.inf
+
+
+def probability_of_improvement(x: aggregate.TaskScores, y: aggregate.TaskScores) -> float:
+    """P(X > Y) (ties count a half) over all pairs of runs of a task, averaged over tasks (rliable's)."""
+    values = []
+    for task in x:
+        a, b = np.asarray(x[task])[:, None], np.asarray(y[task])[None, :]
+        values.append(float(np.mean((a > b) + 0.5 * (a == b))))
+    return float(np.mean(values))
+
+
+def _cell(values: np.ndarray) -> str:
+    return f"{values.mean():.0f} ± {values.std() / 2:.0f} ({len(values)})"
+
+
+def table(runs, baseline: str, paper: bool) -> list[str]:
+    variants = [v for v in ORDER if any(v in by_variant for by_variant in runs.values())]
+    variants += sorted({v for by_variant in runs.values() for v in by_variant} - set(variants))
+    lines = [
+        "| task | " + " | ".join(variants) + (" | paper: " + " / ".join(PAPER_TABLE1["Hopper-v5"]) if paper else "") + " |"
+    ]
+    lines.append("|---" * (len(variants) + 1 + paper) + "|")
+    for task, by_variant in runs.items():
+        base = np.mean([r["max_average_return"] for r in by_variant.get(baseline, [])] or [np.nan])
+        cells = []
+        for variant in variants:
+            scores = np.array([r["max_average_return"] for r in by_variant.get(variant, [])])
+            ratio = f" **{scores.mean() / base:.2f}x**" if len(scores) and variant != baseline and np.isfinite(base) else ""
+            cells.append(_cell(scores) + ratio if len(scores) else "—")
+        row = f"| {task} | " + " | ".join(cells)
+        if paper:
+            published = PAPER_TABLE1.get(task, {})
+            ppo = published.get("ppo", (np.nan,))[0]
+            row += " | " + " / ".join(
+                f"{m:.0f} ({m / ppo:.2f}x)" if v != "ppo" else f"{m:.0f}" for v, (m, _) in published.items()
+            )
+        lines.append(row + " |")
+    return lines
+
+
+def aggregates(runs, baseline: str) -> tuple[list[str], dict[str, aggregate.TaskScores]]:
+    """IQM with CIs, probability of improvement, over the tasks where the baseline and the variant both have runs."""
+    lines = ["| variant | tasks | runs | IQM of max average return / baseline's mean [95 % CI] | P(variant > baseline) |",
+             "|---|---|---|---|---|"]  # fmt: skip
+    normalized: dict[str, aggregate.TaskScores] = {}
+    variants = sorted(
+        {v for by_variant in runs.values() for v in by_variant},
+        key=lambda v: (v not in ORDER, ORDER.index(v) if v in ORDER else 0, v),
+    )
+    for variant in variants:
+        tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
+        if not tasks:
+            continue
+        scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
+        base = {t: np.array([r["max_average_return"] for r in runs[t][baseline]]) for t in tasks}
+        normalized[variant] = aggregate.normalized(scores, base)
+        low, high = aggregate.stratified_bootstrap_ci(normalized[variant])
+        improvement = "—" if variant == baseline else f"{probability_of_improvement(scores, base):.2f}"
+        n = sum(len(v) for v in scores.values())
+        value = aggregate.iqm(normalized[variant])
+        lines.append(f"| {variant} | {len(tasks)} | {n} | {value:.2f} [{low:.2f}, {high:.2f}] | {improvement} |")
+    return lines, normalized
+
+
+def speed(runs, baseline: str) -> list[str]:
+    lines = ["| task | variant | steps/CPU-s (vs baseline) | steps/wall-s (vs baseline) | best-so-far at the baseline's "
+             "CPU time (vs baseline) | CPU min per run (+ evaluation) |", "|---|---|---|---|---|---|"]  # fmt: skip
+    for task, by_variant in runs.items():
+        base_runs = by_variant.get(baseline, [])
+        base_cpu = np.mean([r["cpu_seconds"] for r in base_runs]) if base_runs else np.nan
+        base_speed = np.mean([r["steps_per_cpu_second"] for r in base_runs]) if base_runs else np.nan
+        base_wall = np.mean([r["steps_per_wall_second"] for r in base_runs]) if base_runs else np.nan
+        base_best = np.mean([best_so_far_at(r, base_cpu) for r in base_runs]) if base_runs else np.nan
+        for variant, variant_runs in by_variant.items():
+            cpu_speed = np.mean([r["steps_per_cpu_second"] for r in variant_runs])
+            wall_speed = np.mean([r["steps_per_wall_second"] for r in variant_runs])
+            best = np.mean([best_so_far_at(r, base_cpu) for r in variant_runs]) if base_runs else np.nan
+            minutes = np.mean([r["cpu_seconds"] for r in variant_runs]) / 60
+            evaluating = np.mean([r["eval_cpu_seconds"] for r in variant_runs]) / 60
+            lines.append(f"| {task} | {variant} | {cpu_speed:.0f} ({cpu_speed / base_speed:.2f}x) | {wall_speed:.0f} "
+                         f"({wall_speed / base_wall:.2f}x) | {best:.0f} ({best / base_best:.2f}x) | "
+                         f"{minutes:.1f} (+{evaluating:.1f}) |")  # fmt: skip
+    return lines
+
+
+def expected_duration(runs, campaigns: list[Campaign], workers: int) -> str:
+    """The campaigns' CPU time, from the mean time of the completed runs of each variant (per task where known)."""
+    per_run = {
+        (t, v): np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in rs])
+        for t, bv in runs.items()
+        for v, rs in bv.items()
+    }
+    if not per_run:
+        return "No run has completed yet."
+    fallback = float(np.mean(list(per_run.values())))
+    total = remaining = 0.0
+    for campaign in campaigns:
+        for task, variant, seed in campaign.grid:
+            seconds = per_run.get((task, variant), fallback)
+            total += seconds
+            if not any(r["seed"] == seed for r in runs.get(task, {}).get(variant, [])):
+                remaining += seconds
+    return (f"The campaigns' {sum(len(c.grid) for c in campaigns)} runs take about {total / 3600:.0f} CPU-hours "
+            f"(completed runs' mean per task and variant, the mean of all where none completed yet): about "
+            f"{remaining / 3600 / workers:.1f} hours left on {workers} cores.")  # fmt: skip
+
+
+def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(runs)
+    figure, axes = plt.subplots(2, len(tasks) + 1, figsize=(3.4 * (len(tasks) + 1), 6.0), squeeze=False)
+    colors = {}
+    for column, task in enumerate(tasks):
+        for variant, variant_runs in runs[task].items():
+            color = colors.setdefault(variant, f"C{len(colors)}")
+            n = min(len(r["curve"]["mean"]) for r in variant_runs)
+            means = np.array([r["curve"]["mean"][:n] for r in variant_runs])
+            steps = np.array(variant_runs[0]["curve"]["steps"][:n])
+            cpu = np.mean([r["curve"]["cpu_s"][:n] for r in variant_runs], axis=0) / 60
+            for row, x in enumerate((steps / 1e6, cpu)):
+                ax = axes[row][column]
+                ax.plot(x, means.mean(0), color=color, label=f"{variant} ({len(variant_runs)})")
+                ax.fill_between(x, means.mean(0) - means.std(0) / 2, means.mean(0) + means.std(0) / 2, color=color, alpha=0.2)
+        axes[0][column].set_title(task, fontsize=9)
+        axes[0][column].set_xlabel("env steps (M)")
+        axes[1][column].set_xlabel("training CPU minutes")
+        axes[0][column].legend(fontsize=7)
+    axes[0][0].set_ylabel("evaluation return (mean ± half std)")
+    axes[1][0].set_ylabel("evaluation return (mean ± half std)")
+    taus = np.linspace(0, 2.5, 101)
+    ax = axes[0][-1]
+    for variant, scores in normalized.items():
+        low, high = aggregate.profile_band(scores, taus)
+        ax.plot(taus, aggregate.performance_profile(scores, taus), color=colors.get(variant), label=variant)
+        ax.fill_between(taus, low, high, color=colors.get(variant), alpha=0.2)
+    ax.set_title("performance profile", fontsize=9)
+    ax.set_xlabel("max average return / baseline's mean")
+    ax.set_ylabel("fraction of runs above")
+    ax.legend(fontsize=7)
+    axes[1][-1].axis("off")
+    figure.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png, dpi=80)
+    plt.close(figure)
+
+
+def report(names: list[str], storage: str | None, baseline: str, workers: int, png: pathlib.Path | None) -> str:
+    runs, notes, campaigns = collect(names, storage)
+    paper = all(c.protocol == "paper" for c in campaigns)
+    complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
+    total = sum(len(c.grid) for c in campaigns)
+    lines = [f"Campaigns {', '.join(names)}: {complete} of {total} runs complete.", ""]
+    if not runs:
+        return "\n".join(lines)
+    commits = sorted({r["commit"] for bv in runs.values() for rs in bv.values() for r in rs})
+    machines = sorted({r["machine"] for bv in runs.values() for rs in bv.values() for r in rs})
+    versions = next(iter(next(iter(runs.values())).values()))[0]["versions"]
+    steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
+    beside = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
+    aggregate_lines, normalized = aggregates(runs, baseline)
+    sections = [
+        [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
+         f"ratio to {baseline}'s mean{beside}:"],
+        table(runs, baseline, paper),
+        [f"Over tasks, baseline-normalized (each run's max average return / {baseline}'s mean on its task), "
+         "stratified bootstrap over seeds:"],
+        aggregate_lines,
+    ]  # fmt: skip
+    if paper:
+        ratios = {v: np.mean([PAPER_TABLE1[t][v][0] / PAPER_TABLE1[t]["ppo"][0] for t in PAPER_TABLE1]) for v in ORDER[1:5]}
+        sections.append(
+            ["The paper's ratios to its PPO, mean over its six tasks: " + ", ".join(f"{v} {r:.2f}" for v, r in ratios.items())]
+        )
+    sections += [
+        ["Speed (env steps per CPU-second of each run's process, evaluations excluded; wall-clock beside) and "
+         f"the best-so-far return within {baseline}'s mean CPU time on the task:"],
+        speed(runs, baseline),
+        [expected_duration(runs, campaigns, workers)],
+    ]  # fmt: skip
+    if paper:
+        sections += [["Deviations from the paper:"], [f"- {d}" for d in PAPER_DEVIATIONS]]
+    libraries = ", ".join(f"{name} {versions[name]}" for name in ("torch", "stable_baselines3", "gymnasium", "mujoco"))
+    sections.append([f"Runs made at commits {', '.join(commits)} on {', '.join(machines)}; {libraries}."])
+    sections.append([f"- {note}" for note in notes])
+    lines += [line for section in sections if section for line in (*section, "")]
+    if png is not None:
+        plot(runs, png, normalized)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--campaign", nargs="+", required=True)
+    parser.add_argument("--storage", default=None, help="database URL or journal file (default: benchmarks/campaigns/)")
+    parser.add_argument("--baseline", default="ppo", help="the variant every ratio is to")
+    parser.add_argument("--workers", type=int, default=2, help="cores the expected duration is for")
+    parser.add_argument("--out", type=pathlib.Path, default=None, help="write report.md and curves.png in this folder")
+    args = parser.parse_args()
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    png = args.out / "curves.png" if args.out else None
+    text = report(args.campaign, args.storage, args.baseline, args.workers, png)
+    if args.out:
+        (args.out / "report.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

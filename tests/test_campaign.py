@@ -1,0 +1,122 @@
+"""Learning campaigns (benchmarks/campaign.py): a tiny grid through Optuna's journal storage, a killed worker's
+trial retried exactly once, a resume from the journal and the report from the storage alone."""
+
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import optuna
+import pytest
+from optuna.distributions import CategoricalDistribution
+from optuna.trial import TrialState
+
+ROOT = pathlib.Path(__file__).parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import campaign  # noqa: E402
+import campaign_report  # noqa: E402
+
+TASK = "InvertedPendulum-v5"
+
+
+def _definition(*variants: str, seeds=("0",), timesteps: int = 4000) -> list[str]:
+    return ["--protocol", "paper", "--tasks", TASK, "--variants", *variants, "--seeds", *seeds,
+            "--timesteps", str(timesteps), "--eval-freq", "2000", "--eval-episodes", "2"]  # fmt: skip
+
+
+def _campaign(*args: str) -> str:
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), *args]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    return result.stdout
+
+
+def _study(name: str, journal: pathlib.Path) -> optuna.Study:
+    return campaign.open_study(name, campaign.storage_of(name, str(journal)))[0]
+
+
+def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
+    journal = tmp_path / "tiny.journal"
+    definition = _definition("ppo", "opr-e2e")
+    stdout = _campaign("run", "--campaign", "tiny", "--storage", str(journal), "--workers", "2", *definition)
+    assert stdout.count("tiny #") == 2  # one line per finished trial
+    trials = _study("tiny", journal).get_trials()
+    assert sorted((t.params["variant"], t.state.name) for t in trials) == [("opr-e2e", "COMPLETE"), ("ppo", "COMPLETE")]
+    for trial in trials:
+        attrs = trial.user_attrs
+        curve = attrs["curve"]
+        assert curve["steps"] == [2000, 4000] and sorted(trial.intermediate_values) == [2000, 4000]
+        assert trial.value == attrs["max_average_return"] == max(curve["mean"]) and attrs["final_return"] == curve["mean"][-1]
+        assert [trial.intermediate_values[s] for s in curve["steps"]] == curve["mean"]
+        assert 0 < curve["cpu_s"][0] < curve["cpu_s"][1] <= attrs["cpu_seconds"] and attrs["eval_cpu_seconds"] > 0
+        assert attrs["steps_per_cpu_second"] == pytest.approx(4000 / attrs["cpu_seconds"])
+        assert set(attrs["versions"]) >= {"torch", "stable_baselines3", "gymnasium", "mujoco"} and attrs["commit"]
+    # the same command again: the grid is complete, nothing runs twice
+    again = _campaign("run", "--campaign", "tiny", "--storage", str(journal), "--workers", "2")
+    assert "tiny: 2/2 grid points complete, 0 waiting" in again and len(_study("tiny", journal).get_trials()) == 2
+    # a stored campaign is never redefined
+    with pytest.raises(ValueError, match="never changes"):
+        _campaign_main("run", "--campaign", "tiny", "--storage", str(journal), *_definition("ppo"))
+    # the report, from the storage alone
+    text = campaign_report.report(["tiny"], str(journal), "ppo", 2, tmp_path / "curves.png")
+    value = {t.params["variant"]: t.value for t in trials}
+    row = next(line for line in text.splitlines() if line.startswith(f"| {TASK} | "))
+    ratio = value["opr-e2e"] / value["ppo"]
+    assert row.startswith(f"| {TASK} | {value['ppo']:.0f} ± 0 (1) | {value['opr-e2e']:.0f} ± 0 (1) **{ratio:.2f}x** |")
+    assert "Campaigns tiny: 2 of 2 runs complete." in text and "Deviations from the paper" in text
+    assert (tmp_path / "curves.png").stat().st_size > 10_000
+
+
+def _campaign_main(*args: str) -> None:
+    campaign.main(list(args))
+
+
+def test_a_killed_workers_trial_is_retried_exactly_once(tmp_path):
+    journal = tmp_path / "kill.journal"
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "run", "--campaign", "kill", "--storage",
+               str(journal), "--workers", "1", *_definition("ppo", seeds=("0", "1"), timesteps=8000)]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 300
+    killed = None
+    while killed is None and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.5)
+        if journal.exists():
+            running = [t for t in _study("kill", journal).get_trials() if t.state == TrialState.RUNNING]
+            killed = next((t for t in running if "progress" in t.user_attrs), None)  # mid-training
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    assert killed is not None, "no trial reached its first evaluation"
+    assert _study("kill", journal).trials[killed.number].state == TrialState.RUNNING  # a dead worker's trial
+    stdout = _campaign("run", "--campaign", "kill", "--storage", str(journal), "--workers", "2")
+    assert f"trials [{killed.number}] were interrupted or their worker is gone" in stdout
+    trials = _study("kill", journal).get_trials()
+    assert trials[killed.number].state == TrialState.FAIL
+    retries = [t for t in trials if t.system_attrs.get("failed_trial") == killed.number]
+    assert len(retries) == 1 and retries[0].state == TrialState.COMPLETE and retries[0].params == killed.params
+    complete = sorted(t.params["seed"] for t in trials if t.state == TrialState.COMPLETE)
+    assert complete == [0, 1]  # every grid point once
+
+
+def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tmp_path):
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3), 4000, 2000, 2)
+    study, _ = campaign.open_study("recover", campaign.storage_of("recover", str(tmp_path / "r.journal")), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+
+    def add(seed: int, system_attrs=None, **user_attrs) -> None:
+        params = {"task": TASK, "variant": "ppo", "seed": seed}
+        study.add_trial(optuna.create_trial(state=TrialState.FAIL, params=params, distributions=distributions,
+                                            user_attrs=user_attrs, system_attrs=system_attrs))  # fmt: skip
+
+    add(0, interrupted="stopped")  # SIGINT / SIGTERM
+    add(1)  # its training raised: it stays failed
+    add(2, {"retry_history": list(range(campaign.MAX_RETRY))}, interrupted="worker gone")  # retried often enough
+    assert campaign.recover(study, tiny) == [0] and campaign.recover(study, tiny) == []  # enqueued once
+    waiting = [t for t in study.get_trials() if t.state == TrialState.WAITING]
+    assert [t.params["seed"] for t in waiting] == [0] and waiting[0].system_attrs["retry_history"] == [0]
+    assert campaign.pending(study, tiny) == 2  # seed 0 again and seed 3, never started; not seeds 1 and 2
+    with pytest.raises(ValueError, match="Unknown variants \\['opr'\\] of protocol 'paper'"):
+        campaign.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
+    with pytest.raises(ValueError, match="Unknown campaign 'nothing'"):
+        campaign.open_study("nothing", campaign.storage_of("nothing", str(tmp_path / "n.journal")))
