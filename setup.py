@@ -42,6 +42,8 @@ setup(
     ],
     extras_require={
         "mujoco": ["gymnasium[mujoco]>=1.0"],
+        # LunarLanderContinuous-v3, one of the paper's six tasks (benchmarks/campaign.py)
+        "box2d": ["gymnasium[box2d]>=1.0"],
         "zoo": ZOO,
         "tests": [
             "pytest",
