@@ -6,7 +6,8 @@ before it acts, trains the critic on the history and the encoder on its objectiv
 One iteration, as :meth:`PeVFAAlgorithm.train` reads:
 
 1. roll out pi_t (:meth:`collect_rollouts`): pi_t is recorded first and becomes the critic's behaviour policy; its
-   ``(observation, value target)`` samples are appended to the history when the rollout ends;
+   ``(observation, value target)`` samples are appended to the history when the rollout ends, and a representation
+   that reads rollouts gets its observations (``observe_rollout`` of the policy);
 2. CL / AUX steps on batches of recorded policies (:meth:`_train_objectives`);
 3. extra critic updates on the samples of historical policies 0..t-1, chi recomputed by the current encoder
    (:meth:`_train_on_history`);
@@ -224,6 +225,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         else:
             complete = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
         if complete:
+            self.policy.observe_rollout(rollout_buffer)  # for a representation that reads rollouts (rollout_rows)
             self.recorder.add_rollout(
                 rollout_buffer,
                 policy_id,

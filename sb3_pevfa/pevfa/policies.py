@@ -9,15 +9,17 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import CombinedExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.utils import obs_as_tensor
 from torch import nn
 
 from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, PeVFAValueHead
 from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
-from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, state_dim
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, rows, state_dim
 from sb3_pevfa.pevfa.representations import PolicyRepresentation, make_representation
 
 
@@ -297,6 +299,23 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     def embed(self, records: PolicyRecord) -> th.Tensor:
         """chi of ``P`` recorded policies, ``(P, embedding_dim)``."""
         return self.representation(records)
+
+    def observe_rollout(self, buffer: RolloutBuffer) -> None:
+        """Hand the rows of a complete rollout that the representation reads (:meth:`PolicyRepresentation.rollout_rows`,
+        e.g. to set learned inputs of its own from the first rollout) to it as the actor's inputs (after
+        ``preprocess_obs`` and the actor's features extractor); where it reads none, nothing is done.
+
+        :param buffer: The rollout, before SB3's ``get`` flattens it: observations ``(n_steps, n_envs, ...)``
+        """
+        index = self.representation.rollout_rows(buffer.buffer_size * buffer.n_envs)
+        if index is None:
+            return
+        envs, steps = np.divmod(index, buffer.buffer_size)  # env-major rows
+        observations = obs_as_tensor(rows(buffer.observations, (steps, envs)), self.device)
+        with th.no_grad():
+            features = super(ActorCriticPolicy, self).extract_features(observations, self.pi_features_extractor)
+        self.representation.observe_rollout(features)
+        self.clear_embedding_cache()
 
     def set_behaviour_record(self, record: PolicyRecord) -> None:
         """Make the critic evaluate, by default, the policy of ``record`` (one policy, ``P == 1``)."""

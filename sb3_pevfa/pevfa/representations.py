@@ -2,6 +2,7 @@
 
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import create_mlp
@@ -37,6 +38,15 @@ class PolicyRepresentation(nn.Module):
 
     def forward(self, records: PolicyRecord) -> th.Tensor:
         raise NotImplementedError
+
+    def rollout_rows(self, n_observations: int) -> np.ndarray | None:
+        """Rows of a complete rollout's ``n_observations`` observations (env-major) that :meth:`observe_rollout` reads;
+        None (the default) where it reads none, and the policy then does no work (see ``observe_rollout`` of
+        :class:`~sb3_pevfa.pevfa.policies.PeVFAActorCriticPolicy`)."""
+        return None
+
+    def observe_rollout(self, features: th.Tensor) -> None:
+        """Read the rows of :meth:`rollout_rows` as the actor's inputs, ``(rows, features_dim)``."""
 
 
 def _mlp(input_dim: int, arch: tuple[int, ...], activation_fn: type[nn.Module]) -> nn.Sequential:
