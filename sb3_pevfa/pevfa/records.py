@@ -48,10 +48,17 @@ class ActorLayout:
     matrix ``[W | b]`` of shape ``(out, in + 1)``, row-major: each row is one unit (an "operation" in the
     paper's terms). The log standard deviation of Gaussian policies comes last.
     Convolutional feature extractors are not part of the layout: for CNN policies only the MLP head is recorded.
+
+    With the activation after each hidden layer (and gSDE's ``use_expln``), the layout also says how to evaluate the
+    actors of flat parameters (:meth:`evaluate`).
     """
 
     linear_shapes: tuple[tuple[int, int], ...]
     log_std_shape: tuple[int, ...]
+    #: The activation after every hidden layer of ``policy_net``; None where the head is not [Linear, activation]*
+    activation_fn: type[nn.Module] | None = nn.Tanh
+    #: gSDE's ``use_expln`` (how its log-std becomes a standard deviation)
+    use_expln: bool = False
 
     @property
     def log_std_numel(self) -> int:
@@ -75,11 +82,26 @@ class ActorLayout:
             raise TypeError(f"PeVFA expects `action_net` to be nn.Linear, got {type(policy.action_net).__name__}")
         return [*layers, policy.action_net]
 
+    @staticmethod
+    def activation(policy: ActorCriticPolicy) -> type[nn.Module] | None:
+        """The class of the activation after every hidden linear layer of ``policy_net`` (SB3's MlpExtractor: one per
+        layer, ``activation_fn``); None where ``policy_net`` is not a sequence of [Linear, activation] pairs."""
+        steps = [m for m in policy.mlp_extractor.policy_net.modules() if not isinstance(m, nn.Sequential)]
+        kinds = {type(m) for m in steps[1::2]}
+        if len(steps) % 2 or not all(isinstance(m, nn.Linear) for m in steps[0::2]) or len(kinds) > 1 or nn.Linear in kinds:
+            return None
+        return kinds.pop() if kinds else policy.activation_fn
+
     @classmethod
     def from_policy(cls, policy: ActorCriticPolicy) -> "ActorLayout":
         shapes = tuple((layer.out_features, layer.in_features) for layer in cls.linear_layers(policy))
         log_std = getattr(policy, "log_std", None)
-        return cls(linear_shapes=shapes, log_std_shape=tuple(log_std.shape) if isinstance(log_std, th.Tensor) else ())
+        return cls(
+            linear_shapes=shapes,
+            log_std_shape=tuple(log_std.shape) if isinstance(log_std, th.Tensor) else (),
+            activation_fn=cls.activation(policy),
+            use_expln=bool(getattr(policy.action_dist, "use_expln", False)),
+        )
 
     def flatten(self, policy: ActorCriticPolicy) -> th.Tensor:
         """Flat copy (detached) of the actor's parameters, shape ``(n_params,)``."""
@@ -98,6 +120,27 @@ class ActorLayout:
             offset += size
         log_std = params[:, offset:] if self.log_std_numel else None
         return rows, log_std
+
+    def evaluate(self, params: th.Tensor, inputs: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """The actors of batched flat parameters at ``inputs``, all in one batched pass (no loop over the actors).
+
+        :param params: Flat parameters of ``P`` actors, ``(P, n_params)``
+        :param inputs: The actor's inputs (the features extractor's outputs), ``(K, in)`` for all or ``(P, K, in)``
+        :return: ``policy_net``'s output (gSDE's latent) ``(P, K, hidden)`` and ``action_net``'s ``(P, K, out)``
+        """
+        if self.activation_fn is None:
+            raise TypeError("Evaluating actors needs a policy_net of [nn.Linear, activation] pairs (SB3's MlpExtractor)")
+        activation = self.activation_fn()
+        rows, _ = self.split(params)
+        latent = inputs
+        for layer in rows[:-1]:
+            latent = activation(_batched_linear(latent, layer))
+        return latent.expand(len(params), *latent.shape[-2:]), _batched_linear(latent, rows[-1])
+
+
+def _batched_linear(inputs: th.Tensor, rows: th.Tensor) -> th.Tensor:
+    """``inputs @ W.T + b`` for each of ``P`` layers ``rows = [W | b]`` ``(P, out, in + 1)``: ``(P, K, out)``."""
+    return th.matmul(inputs, rows[..., :-1].transpose(1, 2)) + rows[:, None, :, -1]
 
 
 def batch_size(obs: np.ndarray | th.Tensor | dict) -> int:
