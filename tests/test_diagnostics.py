@@ -108,8 +108,9 @@ def test_read_scalars_from_tensorboard(tmp_path):
     plot_local_generalization(next(tmp_path.iterdir()), tmp_path / "tb.png")
 
 
-def test_embedding_maps(tmp_path):
-    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(640)
+@pytest.mark.parametrize("representation", ["opr", "fingerprint"])
+def test_embedding_maps(tmp_path, representation):
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation=representation, **FAST).learn(640)
     ids, embeddings = policy_embeddings(model)
     assert ids.tolist() == model.history.policy_ids
     model.policy.set_training_mode(False)
@@ -123,7 +124,7 @@ def test_embedding_maps(tmp_path):
         policy_embeddings(PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST).learn(192))
 
 
-@pytest.mark.parametrize("representation", ["opr", "spr", "rpr"])
+@pytest.mark.parametrize("representation", ["opr", "spr", "fingerprint", "rpr"])
 def test_zero_shot_values(tmp_path, representation):
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, **FAST).learn(192)
     obs = np.stack([model.observation_space.sample() for _ in range(5)])

@@ -48,9 +48,10 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
 
     Extra parameters (the rest are SB3's):
 
-    :param representation: One of ``opr``, ``spr``, ``rpr``, ``random``, ``stats``, ``none``
-    :param embedding_dim: Size of chi for ``opr``, ``spr`` and ``random``
-    :param representation_kwargs: Keyword arguments of the representation (e.g. ``layer_arch``, ``subsample``)
+    :param representation: One of ``opr``, ``spr``, ``fingerprint``, ``rpr``, ``random``, ``stats``, ``none``
+    :param embedding_dim: Size of chi for ``opr``, ``spr``, ``fingerprint`` and ``random``
+    :param representation_kwargs: Keyword arguments of the representation (e.g. ``layer_arch``, ``subsample``,
+        ``n_probes``)
     :param n_state_action_pairs: State-action pairs recorded per policy, where something reads them (SPR, the AUX
         objective); other configurations record none (:attr:`n_recorded_pairs` is 0)
     :param critic_embedding_arch: Embedding stream of the critic (paper: [64])

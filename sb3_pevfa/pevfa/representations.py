@@ -5,6 +5,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.distributions import StateDependentNoiseDistribution
 from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
 
@@ -155,6 +156,100 @@ class SurfacePolicyRepresentation(PolicyRepresentation):
         return self.projection(self.pair_encoder(pairs).mean(dim=1))
 
 
+#: Action spaces whose distribution parameters ``fingerprint`` reads
+FINGERPRINT_ACTION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+
+
+class FingerprintPolicyRepresentation(PolicyRepresentation):
+    """Fingerprint: the policy's action distribution at ``n_probes`` learned probe states (Policy Evaluation Networks,
+    Harb et al., 2020; Faccio et al., 2022).
+
+    The probe states live in the actor's input space (the features extractor's output: the flattened, preprocessed
+    observation of an MLP policy, in VecNormalize's normalised space where there is one) and are parameters trained by
+    the value loss. They are zero until set, once, to ``n_probes`` evenly spaced observations of the first complete
+    rollout (env-major order, repeated where it holds fewer; no random draw), and are saved with the policy. All the
+    recorded actors are evaluated at them in one batched pass over their stacked flat parameters
+    (:meth:`ActorLayout.evaluate`); their distribution's parameters at every probe (Box: mean and log-std, gSDE's
+    state-dependent one included; Discrete, MultiDiscrete: log-probabilities; MultiBinary: logits) are concatenated
+    and mapped by an MLP to chi.
+
+    :param layout: The actor's parameter layout (with its activation)
+    :param action_space: The actor's action space
+    :param embedding_dim: Size of chi
+    :param n_probes: Number of probe states
+    :param encoder_arch: Hidden layers of the MLP from the probes' distribution parameters to chi
+    :param activation_fn: Activation of that MLP
+    """
+
+    def __init__(
+        self,
+        layout: ActorLayout,
+        action_space: spaces.Space,
+        embedding_dim: int = 64,
+        n_probes: int = 32,
+        encoder_arch: tuple[int, ...] = (64,),
+        activation_fn: type[nn.Module] = nn.ReLU,
+    ):
+        super().__init__(embedding_dim)
+        if not isinstance(action_space, FINGERPRINT_ACTION_SPACES):
+            names = [space.__name__ for space in FINGERPRINT_ACTION_SPACES]
+            raise TypeError(f"representation='fingerprint' supports action spaces {names}, got {action_space}")
+        if layout.activation_fn is None:
+            raise TypeError(
+                "representation='fingerprint' evaluates the recorded actors: their policy_net must be [nn.Linear, "
+                "activation] pairs (SB3's MlpExtractor)"
+            )
+        if isinstance(action_space, spaces.Box) and not layout.log_std_numel:
+            raise ValueError("representation='fingerprint' of a Box action space needs a Gaussian actor with a log-std")
+        if isinstance(n_probes, bool) or not isinstance(n_probes, (int, np.integer)) or n_probes <= 0:
+            raise ValueError(f"n_probes must be a positive int, got {n_probes!r}")
+        if any(int(size) <= 0 for size in encoder_arch):
+            raise ValueError(f"encoder_arch sizes must be positive, got {encoder_arch}")
+        self.layout = layout
+        self.action_space = action_space
+        self.n_probes = int(n_probes)
+        out_dim = layout.linear_shapes[-1][0]
+        self.sde: StateDependentNoiseDistribution | None = None
+        if len(layout.log_std_shape) == 2:  # gSDE: a (latent, 1 or action_dim) log-std matrix
+            self.sde = StateDependentNoiseDistribution(out_dim, layout.log_std_shape[1] > 1, layout.use_expln)
+            self.sde.latent_sde_dim = layout.log_std_shape[0]
+        self.n_features = 2 * out_dim if isinstance(action_space, spaces.Box) else out_dim
+        self.probes = nn.Parameter(th.zeros(self.n_probes, layout.linear_shapes[0][1]))
+        self.register_buffer("probes_set", th.zeros(()))  # 1.0 once set (a float, as the policy's has_behaviour)
+        self.encoder = _mlp(self.n_probes * self.n_features, (*encoder_arch, embedding_dim), activation_fn)
+
+    def rollout_rows(self, n_observations: int) -> np.ndarray | None:
+        if bool(self.probes_set):
+            return None
+        return np.arange(self.n_probes) * n_observations // self.n_probes
+
+    def observe_rollout(self, features: th.Tensor) -> None:
+        with th.no_grad():
+            self.probes.copy_(features.reshape(self.probes.shape))
+            self.probes_set.fill_(1.0)
+
+    def distribution_parameters(self, params: th.Tensor) -> th.Tensor:
+        """The action distribution's parameters of ``P`` actors at every probe state, ``(P, n_probes, n_features)``."""
+        latent, outputs = self.layout.evaluate(params, self.probes)
+        if isinstance(self.action_space, spaces.Box):
+            log_std = self.layout.split(params)[1]
+            if self.sde is None:
+                log_scale = log_std.unsqueeze(1).expand_as(outputs)
+            else:  # SB3's gSDE: std = sqrt(latent^2 @ get_std(log_std)^2 + epsilon) at each state
+                std = self.sde.get_std(log_std.reshape(-1, *self.layout.log_std_shape))
+                log_scale = 0.5 * th.log(th.matmul(latent**2, std**2) + self.sde.epsilon)
+            return th.cat([outputs, log_scale], dim=-1)
+        if isinstance(self.action_space, spaces.Discrete):
+            return outputs.log_softmax(dim=-1)
+        if isinstance(self.action_space, spaces.MultiDiscrete):
+            sizes = [int(n) for n in self.action_space.nvec]
+            return th.cat([part.log_softmax(dim=-1) for part in outputs.split(sizes, dim=-1)], dim=-1)
+        return outputs  # MultiBinary: Bernoulli logits
+
+    def forward(self, records: PolicyRecord) -> th.Tensor:
+        return self.encoder(self.distribution_parameters(records.params).flatten(start_dim=1))
+
+
 class RawPolicyRepresentation(PolicyRepresentation):
     """RPR: the flat parameter vector itself (the critic's embedding stream projects it)."""
 
@@ -210,7 +305,7 @@ class NoPolicyRepresentation(PolicyRepresentation):
 
 
 #: Valid values of ``representation``.
-REPRESENTATIONS = ("opr", "spr", "rpr", "random", "stats", "none")
+REPRESENTATIONS = ("opr", "spr", "fingerprint", "rpr", "random", "stats", "none")
 
 
 def make_representation(
@@ -223,7 +318,7 @@ def make_representation(
 ) -> PolicyRepresentation:
     """Build the representation called ``name`` (one of :data:`REPRESENTATIONS`).
 
-    ``embedding_dim`` sets the size of ``opr``, ``spr`` and ``random``; ``rpr`` and ``stats`` have the size of
+    ``embedding_dim`` sets the size of ``opr``, ``spr``, ``fingerprint`` and ``random``; ``rpr`` and ``stats`` have the size of
     their features, ``none`` has size 0. ``kwargs`` go to the representation's constructor.
     """
     if name not in REPRESENTATIONS:
@@ -238,6 +333,9 @@ def make_representation(
     if name == "spr":
         check_keyword_arguments(SurfacePolicyRepresentation, kwargs, "representation_kwargs of 'spr'", skip=3)
         return SurfacePolicyRepresentation(observation_space, action_space, embedding_dim, **kwargs)
+    if name == "fingerprint":
+        check_keyword_arguments(FingerprintPolicyRepresentation, kwargs, "representation_kwargs of 'fingerprint'", skip=3)
+        return FingerprintPolicyRepresentation(layout, action_space, embedding_dim, **kwargs)
     if name == "rpr":
         return RawPolicyRepresentation(layout)
     if name == "stats":

@@ -35,8 +35,9 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     Parameters not listed are SB3 PPO's (:class:`~stable_baselines3.PPO`).
 
     :param representation: Policy representation: ``opr`` (parameters), ``spr`` (state-action pairs),
-        ``rpr`` (raw parameters), ``random``, ``stats`` (parameter statistics) or ``none`` (conventional critic)
-    :param embedding_dim: Size of chi (``opr``, ``spr``, ``random``)
+        ``fingerprint`` (the actor's outputs at learned probe states), ``rpr`` (raw parameters), ``random``, ``stats``
+        (parameter statistics) or ``none`` (conventional critic)
+    :param embedding_dim: Size of chi (``opr``, ``spr``, ``fingerprint``, ``random``)
     :param representation_kwargs: Keyword arguments of the representation
     :param n_state_action_pairs: State-action pairs recorded per policy (SPR's data; 0 for image observations)
     :param representation_objectives: Extra encoder objectives besides the end-to-end value loss: any of

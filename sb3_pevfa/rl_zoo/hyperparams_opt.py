@@ -73,14 +73,17 @@ def _sample_small_ppo_params(trial: optuna.Trial) -> dict[str, Any]:
 
 
 def _sample_pevfa_params(trial: optuna.Trial, small: bool, rollout_size: int) -> dict[str, Any]:
-    """Representation, objectives, embedding size, history size and update frequency, and critic learning rate.
+    """Representation, objectives (of ``opr`` and ``spr``), embedding size, history size and update frequency, and critic
+    learning rate.
 
     :param rollout_size: ``n_steps * n_envs`` of the trial: the history is sampled larger (PeVFA refuses a history
         that holds no more than one rollout)"""
-    representation = trial.suggest_categorical("representation", ["opr", "spr"] if small else ["opr", "spr", "none"])
+    learned = ["opr", "spr", "fingerprint"]
+    representation = trial.suggest_categorical("representation", learned if small else [*learned, "none"])
     sampled: dict[str, Any] = {"representation": representation}
-    if representation != "none":
+    if representation in ("opr", "spr"):  # the objectives train these encoders only
         sampled["objectives"] = trial.suggest_categorical("objectives", ["e2e", "cl", "aux", "cl+aux"])
+    if representation != "none":
         sampled["embedding_dim"] = trial.suggest_categorical("embedding_dim", [8, 16] if small else [16, 32, 64, 128])
     low, high = (10, 12) if small else (14, 19)
     low = min(max(low, math.floor(math.log2(rollout_size)) + 1), high)  # 2**low > one rollout
