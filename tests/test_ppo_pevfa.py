@@ -969,8 +969,9 @@ def test_a_nan_critic_stops_the_critic_steps_before_they_spread_it():
 
 
 def test_the_default_critic_reads_a_layer_normalised_chi_through_relus():
-    """The default embedding stream (the ablation's choice, docs/benchmarks.md): chi layer-normalised, then ReLU
-    layers, so V depends on chi's direction and not on its scale, which had driven the Tanh stream flat."""
+    """The default embedding stream (the ablation's choice, docs/notes/2026-12-02-critic-and-target-ablation.md): chi
+    layer-normalised, then ReLU layers, so V depends on chi's direction and not on its scale, which had driven the Tanh
+    stream flat."""
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).learn(128)
     policy, head = model.policy, model.policy.value_net
     assert isinstance(head.chi_norm, th.nn.LayerNorm) and any(isinstance(m, th.nn.ReLU) for m in head.embedding_net)

@@ -71,7 +71,8 @@ def test_shipped_hyperparameters(algo):
         assert names <= set(config), sorted(names - set(config))
     for env_id, params in config.items():
         assert params["representation"] == "opr"
-        # PeVFA's own schedule only where it was measured (docs/benchmarks.md): the tuned MuJoCo entries of PPOPeVFA
+        # PeVFA's own schedule only where it was measured (docs/notes/2026-12-02-zoo-tuned-history-cadence.md):
+        # the tuned MuJoCo entries of PPOPeVFA
         tuned = algo == "ppo_pevfa" and env_id in ("Hopper-v5", "HalfCheetah-v5", "Walker2d-v5")
         assert {k for k in params if k in PEVFA_ARGUMENTS} == {"representation", "embedding_dim"} | (
             {"history_train_freq"} if tuned else set()
