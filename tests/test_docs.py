@@ -1,18 +1,159 @@
-"""The documentation site builds with warnings as errors (the documented command), so docstrings and pages can't rot."""
+"""The documentation: the site builds with warnings as errors (the documented command), its links and images resolve,
+it speaks of the package rather than of a work queue, its result files are each cited by a page, and the README stays
+short."""
 
 import pathlib
+import re
 import subprocess
 import sys
 
 ROOT = pathlib.Path(__file__).parents[1]
+DOCS = ROOT / "docs"
+README_MAX_WORDS = 700
+
+
+def pages() -> list[pathlib.Path]:
+    """README.md and every Markdown page under docs/ (not the built site)."""
+    return [ROOT / "README.md", *sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.relative_to(DOCS).parts)]
+
+
+def without_code_blocks(text: str) -> str:
+    return re.sub(r"^(```|~~~).*?^\1", "", text, flags=re.DOTALL | re.MULTILINE)
+
+
+def prose(text: str) -> str:
+    """The text a reader sees as Markdown: fenced code blocks and inline code removed."""
+    return re.sub(r"`[^`\n]*`", "", without_code_blocks(text))
+
+
+LINK = re.compile(r"!?\[[^\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")  # link text may wrap lines
+
+
+def anchors(page: pathlib.Path) -> set[str]:
+    """The anchors MyST gives a page's headings (``myst_heading_anchors = 3``; GitHub's slugs, for the README)."""
+    found = set()
+    text = without_code_blocks(page.read_text())
+    for level, title in re.findall(r"^(#{1,6})\s+(.+?)\s*#*\s*$", text, flags=re.MULTILINE):
+        if len(level) <= 3:
+            found.add(re.sub(r"[^\w\- ]", "", title.replace("`", "").strip().lower()).replace(" ", "-"))
+    return found
+
+
+def broken_links(page: pathlib.Path, root: pathlib.Path = ROOT) -> list[str]:
+    """Relative links and images of a page whose file (or heading anchor, in a Markdown page) does not exist."""
+    broken, name = [], page.relative_to(root)
+    for target in LINK.findall(prose(page.read_text())):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target, flags=re.IGNORECASE):  # http(s):, mailto:, ...
+            continue
+        path, _, anchor = target.partition("#")
+        if not path:  # an anchor of the page itself
+            continue
+        resolved = (page.parent / path).resolve()
+        if not resolved.exists():
+            broken.append(f"{name}: {target} (no such file)")
+        elif anchor and resolved.suffix == ".md" and anchor not in anchors(resolved):
+            broken.append(f"{name}: {target} (no such heading)")
+    return broken
+
+
+ISSUE = re.compile(r"\b(?:issues?|PRs?|pull requests?)\s*#?\s*\d+\b|(?<![\w&/#])#\d+\b", flags=re.IGNORECASE)
+
+
+def issue_references(page: pathlib.Path) -> list[str]:
+    """References to the work queue: "issue 13", "Issue #31", "PR 7", "#18" (code included)."""
+    return [
+        f"{page.relative_to(ROOT)}:{number}: {match.group(0)}"
+        for number, line in enumerate(page.read_text().splitlines(), 1)
+        for match in ISSUE.finditer(line)
+    ]
+
+
+RESULT_PATH = re.compile(r"(?:\.\./)*(?:docs/)?results/[\w./-]*")
+
+
+def cited_results(page: pathlib.Path) -> list[tuple[pathlib.Path, bool]]:
+    """The paths under docs/results a page names (links, commands, prose), each with whether it is a prefix (cut at a
+    glob such as ``*.json`` or ``{a,b}``) rather than a whole path."""
+    text, cited = page.read_text(), []
+    for match in RESULT_PATH.finditer(text):
+        name = match.group(0).rstrip(".")
+        if name.startswith("docs/"):
+            path = ROOT / name
+        elif name.startswith(("results/", "../")):
+            path = (page.parent / name).resolve()
+        else:  # "results/..." inside a longer word
+            continue
+        if DOCS / "results" not in [path, *path.parents]:
+            continue
+        following = text[match.end() : match.end() + 1]
+        cited.append((path, following in ("*", "{") or name.endswith("_")))
+    return cited
 
 
 def test_docs_build_without_warnings(tmp_path):
-    command = [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html", str(ROOT / "docs"), str(tmp_path)]
+    command = [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html", str(DOCS), str(tmp_path)]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-5000:]
-    pages = {path.stem for path in tmp_path.glob("*.html")}
+    built = {path.stem for path in tmp_path.glob("*.html")}
     assert {"index", "install", "quickstart", "algorithm", "representations", "history", "zoo", "diagnostics",
-            "benchmarks", "api", "changelog"} <= pages  # fmt: skip
+            "benchmarks", "api", "changelog", "results-sb3-defaults", "results-zoo-tuned",
+            "results-paper-protocol"} <= built  # fmt: skip
+    notes = {path.stem for path in (tmp_path / "notes").glob("*.html")}
+    assert "index" in notes and {path.stem for path in (DOCS / "notes").glob("*.md")} <= notes
     api = (tmp_path / "api.html").read_text()
     assert "sb3_pevfa.PPOPeVFA" in api and "predict_values" in api  # autodoc found the docstrings
+
+
+def test_relative_links_and_images_resolve():
+    broken = [entry for page in pages() for entry in broken_links(page)]
+    assert not broken, "\n".join(broken)
+
+
+def test_link_checker_catches_what_it_should(tmp_path):
+    page = tmp_path / "page.md"
+    (tmp_path / "other.md").write_text("# Other\n\n## A heading, with `code`\n")
+    page.write_text(
+        "[fine](other.md#a-heading-with-code) [web](https://example.org/x) [anchor](#top) ![img](missing.png)\n"
+        "[gone](nothere.md) [bad anchor](other.md#nope) `[in code](ignored.md)`\n```\n[in a block](ignored.md)\n```\n"
+        "[a wrapped\nlink](wrapped.md)\n"
+    )
+    assert broken_links(page, root=tmp_path) == [
+        "page.md: missing.png (no such file)", "page.md: nothere.md (no such file)",
+        "page.md: other.md#nope (no such heading)", "page.md: wrapped.md (no such file)",
+    ]  # fmt: skip
+
+
+def test_no_issue_references():
+    found = [entry for page in pages() for entry in issue_references(page)]
+    assert not found, "the documentation speaks of the package, not of the work queue:\n" + "\n".join(found)
+    samples = ["issue 13's tests", "Issue #31", "issues 13, 18", "PR 7", "see #18.", "(#4)"]
+    assert all(ISSUE.search(sample) for sample in samples)
+    assert not any(ISSUE.search(s) for s in ["pevfa-opr-history-40k", "seed 2", "[x](a.md#b1)", "&#8203;", "#L12"])
+
+
+def test_readme_is_short():
+    words = len((ROOT / "README.md").read_text().split())
+    assert words <= README_MAX_WORDS, f"README.md has {words} words (at most {README_MAX_WORDS})"
+
+
+def test_every_result_file_is_cited_and_every_cited_result_exists():
+    """Each file under docs/results is named by a page (itself, a folder above it, or a glob's prefix); each path a
+    page names there exists (a prefix: some file starts with it)."""
+    results = DOCS / "results"
+    files = sorted(path for path in results.rglob("*") if path.is_file())
+    cited = [entry for page in pages() for entry in cited_results(page)]
+    missing = sorted({str(path.relative_to(ROOT)) for path, prefix in cited if not prefix and not path.exists()})
+    assert not missing, "named by a page but absent:\n" + "\n".join(missing)
+    globs = {path for path, prefix in cited if prefix}
+    dangling = sorted(str(path.relative_to(ROOT)) for path in globs if not any(str(f).startswith(str(path)) for f in files))
+    assert not dangling, "globs that match nothing:\n" + "\n".join(dangling)
+    broad = {results, results / "notes", *(path for path in results.iterdir() if path.is_dir())}  # whole protocols
+    covers = [(path, prefix) for path, prefix in cited if path not in broad]
+
+    def is_cited(file: pathlib.Path) -> bool:
+        return any(
+            file == path or path in file.parents or (prefix and str(file).startswith(str(path))) for path, prefix in covers
+        )
+
+    orphans = [str(file.relative_to(ROOT)) for file in files if not is_cited(file)]
+    assert not orphans, "files under docs/results that no page names:\n" + "\n".join(orphans)
