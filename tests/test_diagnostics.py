@@ -92,6 +92,14 @@ def test_local_generalization_callback_and_plot(tmp_path):
         PPO("MlpPolicy", "CartPole-v1", n_steps=64).learn(64, callback=LocalGeneralizationCallback())
 
 
+def test_local_generalization_side_critic_learns_at_the_critics_rate():
+    """The conventional critic of the comparison trains as PPOPeVFA's critic does (the paper: 1e-3, actor 1e-4)."""
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", learning_rate=1e-4, critic_learning_rate=2e-3, **FAST)
+    callback = LocalGeneralizationCallback()
+    model.learn(128, callback=callback)
+    assert callback.optimizer.param_groups[0]["lr"] == 2e-3
+
+
 def test_read_scalars_from_tensorboard(tmp_path):
     pytest.importorskip("tensorboard")
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", tensorboard_log=str(tmp_path), **FAST)

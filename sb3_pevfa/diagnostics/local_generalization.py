@@ -59,7 +59,7 @@ class LocalGeneralizationCallback(BaseCallback):
         policy = self.model.policy
         layers = create_mlp(state_dim(policy.observation_space), 1, list(self.net_arch), policy.activation_fn)
         self.critic = nn.Sequential(*layers).to(self.model.device)
-        self.optimizer = th.optim.Adam(self.critic.parameters(), lr=self.model.lr_schedule(1), eps=1e-5)
+        self.optimizer = th.optim.Adam(self.critic.parameters(), lr=self.model.critic_lr_schedule(1), eps=1e-5)
 
     def _on_step(self) -> bool:
         return True
@@ -69,7 +69,7 @@ class LocalGeneralizationCallback(BaseCallback):
 
     def _train_critic(self, states: th.Tensor, targets: th.Tensor) -> None:
         for group in self.optimizer.param_groups:
-            group["lr"] = self.model.lr_schedule(self.model._current_progress_remaining)
+            group["lr"] = self.model.critic_lr_schedule(self.model._current_progress_remaining)
         for _ in range(self.model.n_epochs):
             for index in th.randperm(len(states)).split(self.model.batch_size):
                 loss = F.mse_loss(self.critic(states[index]).flatten(), targets[index])
