@@ -89,11 +89,13 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         "random": paper_protocol("ppo_pevfa", representation="random"),
         "opr-cl": paper_protocol("ppo_pevfa", representation_objectives=("cl",)),
         "spr-e2e": paper_protocol("ppo_pevfa", representation="spr"),
+        "fingerprint-e2e": paper_protocol("ppo_pevfa", representation="fingerprint"),
     },
     "sb3": {
         "ppo": None,
         "opr": {},
         "spr": dict(representation="spr"),
+        "fingerprint": dict(representation="fingerprint"),
     },
 }
 
@@ -154,6 +156,10 @@ CAMPAIGNS: dict[str, Campaign] = {
     # (c) the other representations and objectives, then five more seeds
     "table1-variants": Campaign("paper", TABLE1_TASKS, ("random", "opr-cl", "spr-e2e"), tuple(range(5)), 1_000_000),
     "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
+    # the representations at SB3's PPO defaults (PPOPeVFA's defaults otherwise), 300k steps
+    "representations-sb3": Campaign(
+        "sb3", ("Hopper-v5", "Walker2d-v5"), ("ppo", "opr", "spr", "fingerprint"), tuple(range(5)), 300_000
+    ),
 }
 
 
