@@ -2,8 +2,8 @@
 
 ReLU units that stop receiving gradient leave Adam's moment estimates decaying geometrically towards zero, through
 the float32 denormal range (below 1.2e-38), where x86 CPUs compute each operation in microcode, tens of times
-slower. A few percent of such entries make every optimizer step slower (docs/benchmarks.md, "Denormal numbers in
-the update"). Flushed to zero, they take the value they were decaying to, sooner.
+slower. A few percent of such entries make every optimizer step slower (docs/notes/2026-12-02-denormals.md).
+Flushed to zero, they take the value they were decaying to, sooner.
 
 The setting (``torch.set_flush_denormal``: the CPU's flush-to-zero and denormals-are-zero flags, float32 and
 float64 alike) belongs to the calling thread. torch's worker threads keep their own, so it is applied only where

@@ -3,9 +3,9 @@
 Built from SB3's public pieces (the policy's ``get_distribution`` and ``predict_values``, SB3's distributions with
 their argument checks), with SB3's math and random draws: results equal SB3's own path (``fast_path=False``) up to
 float round-off (``tests/test_fast_path.py``). Only what profiling shows SB3 cannot do as fast is kept here
-(``benchmarks/fast_path.py``, docs/benchmarks.md): the lean PPO update that was here saved 4 % (Hopper-v5) and -1 %
-(CartPole-v1) of the update's CPU time, inside the noise of that measurement (+-5 %), and was removed; both paths
-run SB3's own ``PPO.train`` / ``A2C.train``.
+(docs/notes/2026-12-01-fast-path-redesign.md, ``docs/notes/scripts/fast_path.py``): the lean PPO update that was
+here saved 4 % (Hopper-v5) and -1 % (CartPole-v1) of the update's CPU time, inside the noise of that measurement
+(+-5 %), and was removed; both paths run SB3's own ``PPO.train`` / ``A2C.train``.
 
 Per-step callbacks see SB3's locals except ``values`` and ``log_probs`` (not computed during the rollout).
 """
@@ -87,7 +87,7 @@ def collect_rollouts(
     last observation come from one batched ``predict_values`` pass each, the log-probabilities of the rollout's
     actions from one batched ``get_distribution(...).log_prob`` pass (:func:`log_probabilities`).
 
-    Saves, measured (``benchmarks/fast_path.py``, CPU time of whole rollouts, median of 5, one torch thread):
+    Saves, measured (``docs/notes/scripts/fast_path.py``, CPU time of whole rollouts, median of 5, one torch thread):
     PPOPeVFA's 2048-step rollouts 23 % on Hopper-v5 (1.33 -> 1.03 ms per step) and 29 % on CartPole-v1
     (0.94 -> 0.67); A2CPeVFA's 5-step rollouts 3 % on Hopper-v5 and 11 % on CartPole-v1.
     """

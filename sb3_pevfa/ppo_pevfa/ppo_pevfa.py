@@ -27,7 +27,7 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
        environment steps after ``history_learning_starts`` steps; the value loss also trains the encoder (E2E).
        The defaults (256 samples of 8 policies per 40 steps) feed the critic as many historical samples per step
        as the paper's schedule (``history_batch_size=64, history_batch_policies=None, history_train_freq=10``)
-       in a quarter of the steps (docs/benchmarks.md, "Speed");
+       in a quarter of the steps (docs/notes/2026-12-02-cheaper-history-schedule.md);
     3. ``update_order="joint"`` (default): SB3's joint actor-critic update, values use chi of pi_t's record;
        ``"critic_first"`` (the authors' order): critic epochs on the rollout, GAE recomputed with the updated
        critic, then the actor epochs with the critic frozen.
