@@ -48,6 +48,22 @@ def stratified_bootstrap_ci(
     return float(low), float(high)
 
 
+def normalized_bootstrap_ci(
+    scores: TaskScores, baseline: TaskScores, statistic=iqm, reps: int = 2000, seed: int = 0, confidence: float = 0.95
+) -> tuple[float, float]:
+    """Percentile CI of ``statistic`` of the baseline-normalized scores, resampling the seeds of both the scores and
+    the baseline within each task, so that the baseline's own spread is in the interval."""
+    rng = np.random.default_rng(seed)
+    replicates = []
+    for _ in range(reps):
+        resample = {t: np.asarray(v, float)[rng.integers(len(v), size=len(v))] for t, v in scores.items()}
+        base = {t: np.asarray(baseline[t], float)[rng.integers(len(baseline[t]), size=len(baseline[t]))] for t in scores}
+        replicates.append(statistic(normalized(resample, base)))
+    tail = (1 - confidence) / 2 * 100
+    low, high = np.percentile(replicates, [tail, 100 - tail])
+    return float(low), float(high)
+
+
 def performance_profile(scores: TaskScores, taus: np.ndarray) -> np.ndarray:
     """Fraction of runs (each task weighted equally) whose score exceeds each tau."""
     return np.mean([[np.mean(values > tau) for tau in taus] for values in scores.values()], axis=0)

@@ -27,6 +27,7 @@ it). A task, variant and seed counts once in the report, however often it ran.
 import argparse
 import dataclasses
 import functools
+import inspect
 import os
 import pathlib
 import signal
@@ -41,6 +42,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import optuna
+import sqlalchemy
 import stable_baselines3 as sb3
 import torch as th
 from optuna.storages import JournalStorage, RDBStorage
@@ -55,10 +57,14 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.protocols import paper_protocol
 
-try:  # Optuna >= 4.9's name of the callback that enqueues a failed trial again
+try:  # Optuna >= 4.9's names of the callback that enqueues a stale trial again, and of RDBStorage's argument
     from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+    RETRY_ARGUMENT = "heartbeat_stale_trial_callback"
 except ImportError:  # pragma: no cover
     from optuna.storages import RetryFailedTrialCallback as RetryHeartbeatStaleTrialCallback
+
+    RETRY_ARGUMENT = "failed_trial_callback"
 
 warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
 
@@ -123,8 +129,8 @@ class Campaign:
             )
         if not (self.tasks and self.variants and self.seeds):
             raise ValueError("A campaign needs at least one task, one variant and one seed")
-        if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0:
-            raise ValueError("timesteps, eval_freq and eval_episodes must be positive")
+        if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0 or self.eval_freq > self.timesteps:
+            raise ValueError("timesteps, eval_freq and eval_episodes must be positive, eval_freq at most timesteps")
 
     @property
     def search_space(self) -> dict[str, list]:
@@ -229,8 +235,16 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         "eval_wall_seconds": callback.eval_wall,
         "steps_per_cpu_second": model.num_timesteps / cpu,
         "steps_per_wall_second": model.num_timesteps / wall,
+        "arguments": resolved_arguments(model),
         **provenance(),
     }
+
+
+def resolved_arguments(model: PPO) -> dict[str, str]:
+    """Every constructor argument as the model holds it (class defaults included), as text."""
+    names = inspect.signature(type(model).__init__).parameters
+    values = {name: getattr(model, name) for name in names if name not in ("self", "policy", "env") and hasattr(model, name)}
+    return {name: repr(value) for name, value in values.items()}
 
 
 @functools.cache
@@ -255,8 +269,18 @@ def storage_of(campaign: str, storage: str | None = None) -> optuna.storages.Bas
     """``storage``: a database URL (``postgresql://...``, ``sqlite:///...``), a journal file's path, or None for
     ``benchmarks/campaigns/<campaign>.journal``."""
     if storage and "://" in storage:
-        return RDBStorage(storage, heartbeat_interval=60, grace_period=600,
-                          failed_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY))  # fmt: skip
+        for attempt in range(3):  # machines starting together race to create the schema: the losers read it
+            try:
+                return RDBStorage(
+                    storage,
+                    heartbeat_interval=60,
+                    grace_period=600,
+                    **{RETRY_ARGUMENT: RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)},
+                )
+            except sqlalchemy.exc.IntegrityError:
+                if attempt == 2:
+                    raise
+                time.sleep(1.0 + attempt)
     path = pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{campaign}.journal"
     path.parent.mkdir(parents=True, exist_ok=True)
     return JournalStorage(JournalFileBackend(str(path)))
@@ -267,24 +291,27 @@ def open_study(
 ) -> tuple[optuna.Study, Campaign]:
     """The campaign's study, created with ``given`` (or this file's ``CAMPAIGNS[name]``) and its definition stored;
     a stored campaign is never redefined: a different definition is a ValueError."""
-    existing = {summary.study_name for summary in optuna.get_all_study_summaries(storage)}
     expected = given or CAMPAIGNS.get(name)
-    if name in existing:
-        study = optuna.load_study(study_name=name, storage=storage)
-        campaign = Campaign.from_definition(study.user_attrs["campaign"])
-        if expected is not None and expected.definition() != study.user_attrs["campaign"]:
-            raise ValueError(
-                f"Campaign {name!r} was started as {study.user_attrs['campaign']}, and is now given as "
-                f"{expected.definition()}: a campaign's protocol never changes; start one under another name"
-            )
-    else:
+    existing = {summary.study_name for summary in optuna.get_all_study_summaries(storage)}
+    if name not in existing and expected is None:
+        raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give --protocol, --tasks, "
+                         "--variants, --seeds and --timesteps to define a new one")  # fmt: skip
+    # load_if_exists: another machine may create it at the same moment
+    study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
+    stored = study.user_attrs.get("campaign")
+    if stored is None:  # new (or created by a machine that has not stored its definition yet: the same command's)
         if expected is None:
-            raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give --protocol, --tasks, "
-                             "--variants, --seeds and --timesteps to define a new one")  # fmt: skip
-        campaign = expected
-        study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
-        study.set_user_attr("campaign", campaign.definition())
-    study.sampler = optuna.samplers.GridSampler(campaign.search_space, seed=0)
+            raise ValueError(f"Campaign {name!r} has no definition yet: give it (--protocol, --tasks, ...)")
+        study.set_user_attr("campaign", expected.definition())
+        stored = expected.definition()
+    campaign = Campaign.from_definition(stored)
+    expected = expected or campaign  # a campaign of one's own: its variants' settings as this code defines them
+    if expected.definition() != stored:
+        raise ValueError(
+            f"Campaign {name!r} was started as {stored}, and is now given as {expected.definition()}: a campaign's "
+            "protocol never changes; start one under another name"
+        )
+    study.sampler = optuna.samplers.GridSampler(campaign.search_space)  # each worker its own draw of the free points
     return study, campaign
 
 
@@ -314,7 +341,7 @@ def _alive(worker: dict[str, Any], stale_after: float, heartbeat: float | None) 
             cmdline = pathlib.Path(f"/proc/{worker['pid']}/cmdline").read_bytes()
         except OSError:
             return False
-        return b"campaign" in cmdline
+        return b"campaign.py\x00work" in cmdline  # that process, not another one under a reused pid
     return heartbeat is not None and time.time() - heartbeat < stale_after
 
 
@@ -327,25 +354,33 @@ def _boot_id() -> str:
 
 def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0) -> list[int]:
     """Fail the RUNNING trials of dead workers (journal storage; a database's heartbeat does it there) and enqueue
-    each grid point whose latest trial was interrupted or stale again, at most ``MAX_RETRY`` times.
+    each grid point whose latest trial was interrupted or its worker gone again, at most ``MAX_RETRY`` times.
     Returns the numbers of the trials retried."""
     storage = study._storage
-    retry = RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)
     retried = []
     for trials in grid_states(study, campaign).values():
-        if not trials or any(t.state in (TrialState.COMPLETE, TrialState.WAITING) for t in trials):
+        if any(t.state in (TrialState.COMPLETE, TrialState.WAITING) for t in trials):
+            continue
+        for trial in trials:
+            if trial.state != TrialState.RUNNING or isinstance(storage, RDBStorage):
+                continue
+            started = trial.datetime_start.timestamp() if trial.datetime_start else None
+            if not _alive(trial.user_attrs.get("worker", {}), stale_after, trial.user_attrs.get("heartbeat", started)):
+                storage.set_trial_user_attr(trial._trial_id, "interrupted", "worker gone")
+                storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
+        trials = [storage.get_trial(t._trial_id) for t in trials if t.state != TrialState.PRUNED]  # not duplicates
+        if not trials or any(t.state == TrialState.RUNNING for t in trials):
             continue
         latest = trials[-1]
-        if latest.state == TrialState.RUNNING and not isinstance(storage, RDBStorage):
-            started = latest.datetime_start.timestamp() if latest.datetime_start else None
-            heartbeat = latest.user_attrs.get("heartbeat", started)
-            if _alive(latest.user_attrs.get("worker", {}), stale_after, heartbeat):
-                continue
-            storage.set_trial_user_attr(latest._trial_id, "interrupted", "worker gone")
-            storage.set_trial_state_values(latest._trial_id, TrialState.FAIL)
-            latest = storage.get_trial(latest._trial_id)
-        if _interrupted(latest) and len(latest.system_attrs.get("retry_history", [])) < MAX_RETRY:
-            retry(study, latest)
+        history = latest.system_attrs.get("retry_history", [])
+        if _interrupted(latest) and len(history) < MAX_RETRY:
+            # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
+            attrs = {
+                "failed_trial": latest.system_attrs.get("failed_trial", latest.number),
+                "retry_history": [*history, latest.number],
+            }
+            study.add_trial(optuna.create_trial(state=TrialState.WAITING, params=latest.params,
+                                                distributions=latest.distributions, system_attrs=attrs))  # fmt: skip
             retried.append(latest.number)
     return retried
 
@@ -367,26 +402,38 @@ def done(study: optuna.Study, campaign: Campaign) -> int:
 # ---------------------------------------------------------------------------------------------- workers
 def objective(campaign: Campaign):
     def run_trial(trial: optuna.Trial) -> float:
-        task = trial.suggest_categorical("task", list(campaign.tasks))
-        variant = trial.suggest_categorical("variant", list(campaign.variants))
-        seed = trial.suggest_categorical("seed", list(campaign.seeds))
-        trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": _boot_id(), "pid": os.getpid()})
-        trial.set_user_attr("heartbeat", time.time())
         try:
+            trial.set_user_attr("interrupted", "")
+            task = trial.suggest_categorical("task", list(campaign.tasks))
+            variant = trial.suggest_categorical("variant", list(campaign.variants))
+            seed = trial.suggest_categorical("seed", list(campaign.seeds))
+            point = (task, variant, seed)
+            taken = [t for t in trial.study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.COMPLETE))
+                     if t.number != trial.number and grid_point(t) == point]  # fmt: skip
+            if taken:  # another worker took the same grid point at the same moment
+                trial.set_user_attr("duplicate_of", taken[0].number)
+                raise optuna.TrialPruned()
+            trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": _boot_id(), "pid": os.getpid()})
+            trial.set_user_attr("heartbeat", time.time())
             result = train(campaign, task, variant, seed, trial)
+            for key, value in result.items():
+                trial.set_user_attr(key, value)
         except (KeyboardInterrupt, SystemExit):
             trial.set_user_attr("interrupted", "stopped")
             raise
-        for key, value in result.items():
-            trial.set_user_attr(key, value)
         return result["max_average_return"]
 
     return run_trial
 
 
+def _stop(*_: Any) -> None:
+    """SIGTERM: stop as SIGINT does (the trial is marked interrupted and enqueued again by the next ``run``)."""
+    raise KeyboardInterrupt
+
+
 def work(names: list[str], storage: str | None) -> None:
     """One worker: trials of the campaigns one after another, each campaign's grid before the next one's."""
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    signal.signal(signal.SIGTERM, _stop)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
     for name in names:

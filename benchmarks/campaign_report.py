@@ -20,6 +20,8 @@ import optuna
 from campaign import Campaign, grid_states, open_study, storage_of
 from optuna.trial import TrialState
 
+from sb3_pevfa.protocols import PAPER_DEVIATIONS
+
 #: The paper's Table 1 (2M steps, 4M for Ant; 10 seeds; mean, half a std): task -> variant -> (mean, half std)
 PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
     "HalfCheetah-v5": {"ppo": (2621, 259.31), "random": (2470, 291.65), "opr-e2e": (3171, 427.63),
@@ -35,53 +37,45 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
     "LunarLanderContinuous-v3": {"ppo": (219, 5.33), "random": (226, 2.83), "opr-e2e": (238, 3.37),
                                  "opr-cl": (239, 3.70), "spr-e2e": (236, 3.13)},
 }  # fmt: skip
-#: How this package's paper protocol differs from the paper's runs
-PAPER_DEVIATIONS = (
-    "Task versions: Gymnasium's -v5 MuJoCo tasks (MuJoCo 3) instead of gym 0.9.1's -v1 (mujoco-py 0.5.4, MJPRO131); "
-    "LunarLanderContinuous-v3 instead of LunarLander-v2 (the paper's continuous-action LunarLander).",
-    "Budget: 1M env steps per run on every task instead of 2M (4M on Ant), and 5 seeds (10 in the paper) until the "
-    "second batch of seeds runs.",
-    "The Gaussian's mean is SB3's linear output, not tanh-activated (SB3's policy classes have no tanh on the mean "
-    "without gSDE); SB3 clips the sampled action to the action space's bounds before the env step.",
-    "An iteration is exactly 2000 env steps (the paper: '5 episodes or 2000 time steps'); the 2000 samples go in "
-    "minibatches of 128, the last of 80.",
-    "Advantages are normalized per minibatch (SB3's default; the paper does not say); Adam's epsilon is SB3's 1e-5; "
-    "weights start from PyTorch's default initialization (no orthogonal initialization).",
-    "Monte-Carlo value targets are the discounted returns to the end of the episode, bootstrapped with the critic "
-    "where the 2000-step rollout cuts an episode or a time limit truncates it.",
-    "Evaluation: every 20k env steps, 10 episodes with the deterministic (mean) action, on a separate env seeded with "
-    "the run's seed + 10000. Max average return = the best of these evaluations.",
-)
 #: Column order of the variants
 ORDER = ("ppo", "random", "opr-e2e", "opr-cl", "spr-e2e", "opr-e2e-default-schedule", "opr", "spr")
 
 
-def collect(
-    names: list[str], storage: str | None
-) -> tuple[dict[str, dict[str, list[dict[str, Any]]]], list[str], list[Campaign]]:
+Runs = dict[str, dict[str, list[dict[str, Any]]]]
+
+
+def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str], list[Campaign]]:
     """task -> variant -> the completed runs' user attributes (one per seed: a grid point's first complete trial),
-    the notes on failed or duplicated grid points, and the campaigns."""
-    runs: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    (task, variant) -> the progress of running trials, the notes on failed or duplicated grid points, and the
+    campaigns. Variants are named ``protocol:variant`` where the campaigns mix protocols."""
+    runs: Runs = {}
+    progress: dict[tuple[str, str], list[dict[str, float]]] = {}
     notes, campaigns = [], []
-    for name in names:
-        study, campaign = open_study(name, storage_of(name, storage))
+    studies = [open_study(name, storage_of(name, storage)) for name in names]
+    mixed = len({campaign.protocol for _, campaign in studies}) > 1
+    for study, campaign in studies:
         campaigns.append(campaign)
         for (task, variant, seed), trials in grid_states(study, campaign).items():
+            label = f"{campaign.protocol}:{variant}" if mixed else variant
             complete = [t for t in trials if t.state == TrialState.COMPLETE]
+            running = [
+                t.user_attrs["progress"] for t in trials if t.state == TrialState.RUNNING and "progress" in t.user_attrs
+            ]
+            progress.setdefault((task, label), []).extend(running)
             if complete:
-                runs.setdefault(task, {}).setdefault(variant, []).append({**complete[0].user_attrs, "seed": seed})
+                runs.setdefault(task, {}).setdefault(label, []).append({**complete[0].user_attrs, "seed": seed})
                 if len(complete) > 1:
-                    notes.append(f"{task} {variant} seed {seed} completed {len(complete)} times: the first one counts")
+                    notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
-                notes.append(f"{task} {variant} seed {seed}: trial {trials[-1].number} failed (its training raised)")
-    return runs, notes, campaigns
+                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+    return runs, progress, notes, campaigns
 
 
 def best_so_far_at(run: dict[str, Any], cpu: float) -> float:
-    """The run's best evaluation among those made within ``cpu`` seconds of training CPU (-inf before its first)."""
+    """The run's best evaluation among those made within ``cpu`` seconds of training CPU (nan before its first)."""
     curve = run["curve"]
     within = [mean for mean, at in zip(curve["mean"], curve["cpu_s"]) if at <= cpu]
-    return max(within) if within else -np.inf
+    return max(within) if within else np.nan
 
 
 def probability_of_improvement(x: aggregate.TaskScores, y: aggregate.TaskScores) -> float:
@@ -94,7 +88,7 @@ def probability_of_improvement(x: aggregate.TaskScores, y: aggregate.TaskScores)
 
 
 def _cell(values: np.ndarray) -> str:
-    return f"{values.mean():.0f} ± {values.std() / 2:.0f} ({len(values)})"
+    return f"{values.mean():.0f} ± {values.std() / 2:.0f} ({len(values)})"  # half the std over seeds (ddof 0)
 
 
 def table(runs, baseline: str, paper: bool) -> list[str]:
@@ -109,7 +103,7 @@ def table(runs, baseline: str, paper: bool) -> list[str]:
         cells = []
         for variant in variants:
             scores = np.array([r["max_average_return"] for r in by_variant.get(variant, [])])
-            ratio = f" **{scores.mean() / base:.2f}x**" if len(scores) and variant != baseline and np.isfinite(base) else ""
+            ratio = f" **{scores.mean() / base:.2f}x**" if len(scores) and variant != baseline and base > 0 else ""
             cells.append(_cell(scores) + ratio if len(scores) else "—")
         row = f"| {task} | " + " | ".join(cells)
         if paper:
@@ -138,7 +132,7 @@ def aggregates(runs, baseline: str) -> tuple[list[str], dict[str, aggregate.Task
         scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
         base = {t: np.array([r["max_average_return"] for r in runs[t][baseline]]) for t in tasks}
         normalized[variant] = aggregate.normalized(scores, base)
-        low, high = aggregate.stratified_bootstrap_ci(normalized[variant])
+        low, high = aggregate.normalized_bootstrap_ci(scores, base)
         improvement = "—" if variant == baseline else f"{probability_of_improvement(scores, base):.2f}"
         n = sum(len(v) for v in scores.values())
         value = aggregate.iqm(normalized[variant])
@@ -167,26 +161,39 @@ def speed(runs, baseline: str) -> list[str]:
     return lines
 
 
-def expected_duration(runs, campaigns: list[Campaign], workers: int) -> str:
-    """The campaigns' CPU time, from the mean time of the completed runs of each variant (per task where known)."""
-    per_run = {
-        (t, v): np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in rs])
-        for t, bv in runs.items()
-        for v, rs in bv.items()
-    }
-    if not per_run:
-        return "No run has completed yet."
-    fallback = float(np.mean(list(per_run.values())))
+def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
+    """The campaigns' CPU time and the wall-clock time left: per task and variant, the completed runs' mean, else
+    extrapolated from running trials' progress (training only); grid points with neither are counted apart."""
+    cpu: dict[tuple[str, str], float] = {}
+    wall: dict[tuple[str, str], float] = {}
+    for task, by_variant in runs.items():
+        for variant, variant_runs in by_variant.items():
+            cpu[task, variant] = float(np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in variant_runs]))
+            wall[task, variant] = float(np.mean([r["wall_seconds"] + r["eval_wall_seconds"] for r in variant_runs]))
     total = remaining = 0.0
+    unknown = extrapolated = 0
+    mixed = len({c.protocol for c in campaigns}) > 1
     for campaign in campaigns:
         for task, variant, seed in campaign.grid:
-            seconds = per_run.get((task, variant), fallback)
-            total += seconds
-            if not any(r["seed"] == seed for r in runs.get(task, {}).get(variant, [])):
-                remaining += seconds
-    return (f"The campaigns' {sum(len(c.grid) for c in campaigns)} runs take about {total / 3600:.0f} CPU-hours "
-            f"(completed runs' mean per task and variant, the mean of all where none completed yet): about "
-            f"{remaining / 3600 / workers:.1f} hours left on {workers} cores.")  # fmt: skip
+            key = (task, f"{campaign.protocol}:{variant}" if mixed else variant)
+            if key not in cpu and progress.get(key):
+                steps = np.mean([p["steps"] for p in progress[key]])
+                cpu[key] = float(np.mean([p["cpu_s"] for p in progress[key]])) / steps * campaign.timesteps
+                wall[key] = float(np.mean([p["wall_s"] for p in progress[key]])) / steps * campaign.timesteps
+                extrapolated += 1
+            done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
+            if key not in cpu:
+                unknown += not done
+                continue
+            total += cpu[key]
+            remaining += 0.0 if done else wall[key]
+    text = (f"Expected duration: about {total / 3600:.0f} CPU-hours for the runs whose time is known, "
+            f"{remaining / 3600 / workers:.0f} wall-clock hours left on {workers} workers (completed runs' mean time "
+            "per task and variant; where none completed, extrapolated from a running trial's progress, training "
+            "only).")  # fmt: skip
+    if unknown:
+        text += f" {unknown} runs of tasks and variants not started yet are not counted."
+    return text
 
 
 def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -> None:
@@ -233,7 +240,7 @@ def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -
 
 
 def report(names: list[str], storage: str | None, baseline: str, workers: int, png: pathlib.Path | None) -> str:
-    runs, notes, campaigns = collect(names, storage)
+    runs, progress, notes, campaigns = collect(names, storage)
     paper = all(c.protocol == "paper" for c in campaigns)
     complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
     total = sum(len(c.grid) for c in campaigns)
@@ -263,7 +270,7 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         ["Speed (env steps per CPU-second of each run's process, evaluations excluded; wall-clock beside) and "
          f"the best-so-far return within {baseline}'s mean CPU time on the task:"],
         speed(runs, baseline),
-        [expected_duration(runs, campaigns, workers)],
+        [expected_duration(runs, progress, campaigns, workers)],
     ]  # fmt: skip
     if paper:
         sections += [["Deviations from the paper:"], [f"- {d}" for d in PAPER_DEVIATIONS]]

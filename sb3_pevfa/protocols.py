@@ -11,11 +11,7 @@ updates, a history of the current policy only).
     model = PPOPeVFA("MlpPolicy", "Hopper-v5", **paper_protocol("ppo_pevfa"), seed=0)   # PPO-PeVFA, OPR, E2E
     model = PPOPeVFA("MlpPolicy", "Hopper-v5", **paper_protocol("ppo"), seed=0)         # the paper's PPO
 
-Where the paper is silent or SB3's policy classes differ (docs/protocols.md lists them): the Gaussian's mean is
-SB3's linear output, not tanh-activated (SB3 clips the action to the Box before the env step); advantages are
-normalized per minibatch (SB3's default); the weights start from PyTorch's default initialization (no orthogonal
-initialization, one of the code-level optimizations of Engstrom et al., 2020); an iteration is 2000 environment steps
-(the paper: "5 episodes or 2000 time steps").
+Where the paper is silent, or SB3's policy classes differ from its networks: :data:`PAPER_DEVIATIONS`.
 """
 
 import copy
@@ -82,3 +78,24 @@ def paper_protocol(algorithm: str = "ppo_pevfa", **overrides: Any) -> dict[str, 
     arguments = {**PAPER_COMMON, **copy.deepcopy(PAPER_ALGORITHMS[algorithm])}
     policy_kwargs = {**PAPER_ACTOR, **arguments.pop("policy_kwargs"), **(overrides.pop("policy_kwargs", None) or {})}
     return {**arguments, **overrides, "policy_kwargs": policy_kwargs}
+
+
+#: How this package's paper protocol, and the campaign that runs it (``benchmarks/campaign.py``), differ from the
+#: paper's runs
+PAPER_DEVIATIONS = (
+    "Task versions: Gymnasium's -v5 MuJoCo tasks (today's mujoco bindings) instead of gym 0.9.1's -v1 (mujoco-py "
+    "0.5.4, MJPRO131), and LunarLanderContinuous-v3 instead of LunarLander-v2 (the paper's continuous-action "
+    "LunarLander): absolute returns are not comparable with the paper's, ratios to each one's PPO are.",
+    "Budget: 1M env steps per run on every task instead of 2M (4M on Ant), and 5 seeds (10 in the paper) until the "
+    "second batch of seeds runs.",
+    "The Gaussian's mean is SB3's linear output, not tanh-activated (SB3's policy classes have no tanh on the mean "
+    "without gSDE); SB3 clips the sampled action to the action space's bounds before the env step.",
+    "An iteration is exactly 2000 env steps (the paper: '5 episodes or 2000 time steps'); the 2000 samples go in "
+    "minibatches of 128, the last of 80.",
+    "Advantages are normalized per minibatch (SB3's default; the paper does not say); Adam's epsilon is SB3's 1e-5; "
+    "weights start from PyTorch's default initialization (no orthogonal initialization).",
+    "Monte-Carlo value targets are the discounted returns to the end of the episode, bootstrapped with the critic "
+    "where the 2000-step rollout cuts an episode or a time limit truncates it.",
+    "Evaluation: every 20k env steps, 10 episodes with the deterministic (mean) action, on a separate env seeded with "
+    "the run's seed + 10000. Max average return = the best of these evaluations.",
+)

@@ -1,5 +1,10 @@
 import csv
+import os
 import pathlib
+import shutil
+import socket
+import subprocess
+import tempfile
 
 import gymnasium as gym
 import numpy as np
@@ -65,3 +70,47 @@ def sb3_twin_runs(sb3_model, pevfa_model, timesteps: int) -> None:
     assert pevfa_model._n_updates == sb3_model._n_updates
     for name, value in sb3_model.policy.state_dict().items():
         np.testing.assert_allclose(pevfa_model.policy.state_dict()[renamed(name)].numpy(), value.numpy(), atol=1e-5)
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def postgres_url():
+    """A throw-away PostgreSQL server on 127.0.0.1 (Debian's postgresql package; .ci/run installs it)."""
+    tmp_path = pathlib.Path(tempfile.mkdtemp(prefix="sb3-pevfa-pg-"))  # outside pytest's 0700 folders
+    candidates = sorted(pathlib.Path("/usr/lib/postgresql").glob("*/bin"))
+    bindir = candidates[-1] if candidates else None
+    initdb = bindir / "initdb" if bindir else shutil.which("initdb")
+    pg_ctl = bindir / "pg_ctl" if bindir else shutil.which("pg_ctl")
+    if not initdb or not pg_ctl or not pathlib.Path(initdb).exists():
+        pytest.skip("No PostgreSQL server binaries (initdb, pg_ctl): install Debian's 'postgresql' package to run this test")
+    as_user: list[str] = []
+    if os.geteuid() == 0:  # PostgreSQL refuses to run as root: use the package's postgres user
+        if shutil.which("runuser") is None:
+            pytest.skip("Running as root without runuser: cannot start PostgreSQL as an unprivileged user")
+        as_user = ["runuser", "-u", "postgres", "--"]
+        shutil.chown(tmp_path, "postgres")
+    data, port = tmp_path / "pgdata", _free_port()
+    started = subprocess.run(
+        [*as_user, str(initdb), "-D", str(data), "-A", "trust", "-U", "postgres"], capture_output=True, text=True
+    )
+    if started.returncode == 0:
+        options = f"-p {port} -k {tmp_path} -c listen_addresses=127.0.0.1"
+        command = [*as_user, str(pg_ctl), "-D", str(data), "-o", options, "-l", str(tmp_path / "pg.log"), "-w", "start"]
+        started = subprocess.run(command, capture_output=True, text=True)
+    if started.returncode != 0:
+        shutil.rmtree(tmp_path, ignore_errors=True)
+        pytest.skip(f"Could not start a PostgreSQL server: {started.stderr.strip()[-500:]}")
+    try:
+        import psycopg
+
+        with psycopg.connect(host="127.0.0.1", port=port, user="postgres", dbname="postgres", autocommit=True) as connection:
+            connection.execute("CREATE DATABASE optuna")
+        yield f"postgresql://postgres@127.0.0.1:{port}/optuna"
+    finally:
+        subprocess.run([*as_user, str(pg_ctl), "-D", str(data), "-m", "immediate", "stop"], capture_output=True)
+        shutil.rmtree(tmp_path, ignore_errors=True)

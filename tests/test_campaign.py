@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import optuna
 import pytest
 from optuna.distributions import CategoricalDistribution
@@ -69,6 +70,21 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     assert (tmp_path / "curves.png").stat().st_size > 10_000
 
 
+def test_two_machines_share_one_campaign_on_postgresql(postgres_url):
+    """The command of every machine with one database URL: each grid point trains once, whichever worker takes it."""
+    definition = _definition("ppo", seeds=("0", "1", "2"), timesteps=2000)
+    command = ["run", "--campaign", "pg", "--storage", postgres_url, "--workers", "1", *definition]
+    first = subprocess.Popen(
+        [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), *command], stdout=subprocess.PIPE, text=True
+    )
+    second = _campaign(*command)
+    first_out, _ = first.communicate(timeout=600)
+    assert first.returncode == 0
+    study = optuna.load_study(study_name="pg", storage=postgres_url)
+    assert sorted(t.params["seed"] for t in study.trials if t.state == TrialState.COMPLETE) == [0, 1, 2]
+    assert (first_out + second).count("pg #") == len(study.trials) == 3  # nothing trained twice
+
+
 def _campaign_main(*args: str) -> None:
     campaign.main(list(args))
 
@@ -120,3 +136,63 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
         campaign.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
     with pytest.raises(ValueError, match="Unknown campaign 'nothing'"):
         campaign.open_study("nothing", campaign.storage_of("nothing", str(tmp_path / "n.journal")))
+
+
+def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_point(tmp_path, monkeypatch):
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    study, _ = campaign.open_study("raise", campaign.storage_of("raise", str(tmp_path / "r.journal")), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    params = {"task": TASK, "variant": "ppo", "seed": 0}
+    study.add_trial(optuna.create_trial(state=TrialState.FAIL, params=params, distributions=distributions,
+                                        user_attrs={"interrupted": "stopped"}))  # fmt: skip
+    assert campaign.recover(study, tiny) == [0]
+
+    def raises(*args, **kwargs):
+        raise RuntimeError("a NaN in the update")
+
+    monkeypatch.setattr(campaign, "train", raises)
+    study.optimize(campaign.objective(tiny), n_trials=1, catch=(RuntimeError,))  # the retry runs and raises
+    retry = study.trials[1]
+    assert retry.state == TrialState.FAIL and retry.system_attrs["failed_trial"] == 0 and not retry.user_attrs["interrupted"]
+    assert campaign.recover(study, tiny) == []  # a training that raised stays failed
+    # a grid point that another trial has taken is pruned, never trained twice
+    study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, params={**params, "seed": 1},
+                                        distributions=distributions))  # fmt: skip
+    study.enqueue_trial({**params, "seed": 1})
+    study.optimize(campaign.objective(tiny), n_trials=1)
+    assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 2
+
+
+def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
+    """Each evaluation burns 3 s of CPU: the training CPU time of the run and of its curve leaves it out, the
+    evaluation time holds it (an update and a 2000-step rollout take about a second here)."""
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    evaluate = campaign.evaluate_policy
+
+    def slow_evaluation(*args, **kwargs):
+        start = time.process_time()
+        while time.process_time() - start < 3.0:
+            pass
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(campaign, "evaluate_policy", slow_evaluation)
+    result = campaign.train(tiny, TASK, "ppo", 0)
+    cpu = result["curve"]["cpu_s"]
+    assert result["eval_cpu_seconds"] >= 6.0
+    assert cpu[1] - cpu[0] < 3.0  # a rollout and an update between the evaluations, not the first evaluation
+    assert 0 < result["cpu_seconds"] - cpu[1] < 3.0  # the last update after the last evaluation, not the evaluation
+    assert result["arguments"]["max_grad_norm"] == "inf" and result["arguments"]["learning_rate"] == "0.0001"
+
+
+def test_report_statistics_by_hand():
+    runs = {"A": {"ppo": [{"max_average_return": 100.0}, {"max_average_return": 200.0}],
+                  "opr-e2e": [{"max_average_return": 300.0}, {"max_average_return": 400.0}]}}  # fmt: skip
+    row = campaign_report.table(runs, "ppo", paper=False)[2]
+    assert row == "| A | 150 ± 25 (2) | 350 ± 25 (2) **2.33x** |"  # mean ± half the std over seeds, ratio of means
+    x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
+    assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
+    # the baseline's spread widens the interval of the normalized IQM
+    scores, base = {"A": np.array([2.0, 2.1, 1.9, 2.0])}, {"A": np.array([0.5, 1.5, 0.8, 1.2])}
+    fixed = campaign_report.aggregate.stratified_bootstrap_ci(campaign_report.aggregate.normalized(scores, base))
+    low, high = campaign_report.aggregate.normalized_bootstrap_ci(scores, base)
+    assert high - low > 2 * (fixed[1] - fixed[0]) and low < 2.0 < high

@@ -40,7 +40,7 @@ def test_paper_protocol_builds_the_papers_networks_and_optimizers(algorithm):
     # the actor: 2x64 ReLU, a state-independent log-std, nothing shared with the critic
     assert _linear_shapes(policy.mlp_extractor.policy_net) == [(64, 11), (64, 64)]
     assert _activations(policy.mlp_extractor.policy_net) == {nn.ReLU} and policy.log_std.shape == (3,)
-    assert policy.share_features_extractor is False or policy.features_extractor is policy.pi_features_extractor
+    assert policy.ortho_init is False and th.equal(policy.log_std.detach(), th.zeros(3)) and model.normalize_advantage
     actor_ids = {id(p) for p in (*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters())}
     assert not actor_ids & {id(p) for p in policy.critic_parameters()}
     head = policy.value_net

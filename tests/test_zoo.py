@@ -4,11 +4,8 @@ import importlib.util
 import os
 import pathlib
 import re
-import shutil
-import socket
 import subprocess
 import sys
-import tempfile
 
 import numpy as np
 import optuna
@@ -226,50 +223,6 @@ def test_two_workers_share_one_study(tmp_path, kind):
     _two_workers(storage, tmp_path)
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@pytest.fixture
-def postgres_url():
-    """A throw-away PostgreSQL server on 127.0.0.1 (Debian's postgresql package; .ci/run installs it)."""
-    tmp_path = pathlib.Path(tempfile.mkdtemp(prefix="sb3-pevfa-pg-"))  # outside pytest's 0700 folders
-    candidates = sorted(pathlib.Path("/usr/lib/postgresql").glob("*/bin"))
-    bindir = candidates[-1] if candidates else None
-    initdb = bindir / "initdb" if bindir else shutil.which("initdb")
-    pg_ctl = bindir / "pg_ctl" if bindir else shutil.which("pg_ctl")
-    if not initdb or not pg_ctl or not pathlib.Path(initdb).exists():
-        pytest.skip("No PostgreSQL server binaries (initdb, pg_ctl): install Debian's 'postgresql' package to run this test")
-    as_user: list[str] = []
-    if os.geteuid() == 0:  # PostgreSQL refuses to run as root: use the package's postgres user
-        if shutil.which("runuser") is None:
-            pytest.skip("Running as root without runuser: cannot start PostgreSQL as an unprivileged user")
-        as_user = ["runuser", "-u", "postgres", "--"]
-        shutil.chown(tmp_path, "postgres")
-    data, port = tmp_path / "pgdata", _free_port()
-    started = subprocess.run(
-        [*as_user, str(initdb), "-D", str(data), "-A", "trust", "-U", "postgres"], capture_output=True, text=True
-    )
-    if started.returncode == 0:
-        options = f"-p {port} -k {tmp_path} -c listen_addresses=127.0.0.1"
-        command = [*as_user, str(pg_ctl), "-D", str(data), "-o", options, "-l", str(tmp_path / "pg.log"), "-w", "start"]
-        started = subprocess.run(command, capture_output=True, text=True)
-    if started.returncode != 0:
-        shutil.rmtree(tmp_path, ignore_errors=True)
-        pytest.skip(f"Could not start a PostgreSQL server: {started.stderr.strip()[-500:]}")
-    try:
-        import psycopg
-
-        with psycopg.connect(host="127.0.0.1", port=port, user="postgres", dbname="postgres", autocommit=True) as connection:
-            connection.execute("CREATE DATABASE optuna")
-        yield f"postgresql://postgres@127.0.0.1:{port}/optuna"
-    finally:
-        subprocess.run([*as_user, str(pg_ctl), "-D", str(data), "-m", "immediate", "stop"], capture_output=True)
-        shutil.rmtree(tmp_path, ignore_errors=True)
-
-
 def test_two_workers_share_one_study_on_postgresql(tmp_path, postgres_url):
     study = _two_workers(postgres_url, tmp_path, study_name="pg")
     assert study.best_trial is not None or all(t.state == optuna.trial.TrialState.PRUNED for t in study.trials)
@@ -364,7 +317,10 @@ def test_every_shipped_entry_builds_a_model(entry, tmp_path):
     register()
     manager = ExperimentManager(argparse.Namespace(), ALGO_NAME, env_id, str(tmp_path), n_timesteps=1000, eval_freq=-1,
                                 config=str(HYPERPARAMS_PATH), verbose=0)  # fmt: skip
-    model, _ = manager.setup_experiment()
+    try:
+        model, _ = manager.setup_experiment()
+    except gym.error.DependencyNotInstalled as error:  # CarRacing-v3's zoo wrappers resize frames with OpenCV
+        pytest.skip(f"{env_id}'s zoo wrappers cannot be made here: {error}")
     params = yaml.safe_load(HYPERPARAMS_PATH.read_text())[entry]
     assert isinstance(model, PPOPeVFA) and model.representation == params["representation"]
     assert model.n_steps == params.get("n_steps", 2048) and model.n_envs == params.get("n_envs", 1)
