@@ -530,6 +530,7 @@ def main(argv: list[str] | None = None) -> None:
     new.add_argument("--eval-freq", type=int, default=20_000)
     new.add_argument("--eval-episodes", type=int, default=10)
     args = parser.parse_args(argv)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
     if args.protocol or args.tasks or args.variants or args.seeds or args.timesteps:
         missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
         if missing:
