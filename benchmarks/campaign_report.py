@@ -91,9 +91,14 @@ def _cell(values: np.ndarray) -> str:
     return f"{values.mean():.0f} ± {values.std() / 2:.0f} ({len(values)})"  # half the std over seeds (ddof 0)
 
 
-def table(runs, baseline: str, paper: bool) -> list[str]:
-    variants = [v for v in ORDER if any(v in by_variant for by_variant in runs.values())]
-    variants += sorted({v for by_variant in runs.values() for v in by_variant} - set(variants))
+def _variants(runs: Runs) -> list[str]:
+    """The variants of the runs, in Table 1's column order."""
+    present = {v for by_variant in runs.values() for v in by_variant}
+    return sorted(present, key=lambda v: (ORDER.index(v.split(":")[-1]) if v.split(":")[-1] in ORDER else len(ORDER), v))
+
+
+def table(runs: Runs, baseline: str, paper: bool) -> list[str]:
+    variants = _variants(runs)
     lines = [
         "| task | " + " | ".join(variants) + (" | paper: " + " / ".join(PAPER_TABLE1["Hopper-v5"]) if paper else "") + " |"
     ]
@@ -116,16 +121,12 @@ def table(runs, baseline: str, paper: bool) -> list[str]:
     return lines
 
 
-def aggregates(runs, baseline: str) -> tuple[list[str], dict[str, aggregate.TaskScores]]:
+def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregate.TaskScores]]:
     """IQM with CIs, probability of improvement, over the tasks where the baseline and the variant both have runs."""
     lines = ["| variant | tasks | runs | IQM of max average return / baseline's mean [95 % CI] | P(variant > baseline) |",
              "|---|---|---|---|---|"]  # fmt: skip
     normalized: dict[str, aggregate.TaskScores] = {}
-    variants = sorted(
-        {v for by_variant in runs.values() for v in by_variant},
-        key=lambda v: (v not in ORDER, ORDER.index(v) if v in ORDER else 0, v),
-    )
-    for variant in variants:
+    for variant in _variants(runs):
         tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
         if not tasks:
             continue
@@ -140,24 +141,37 @@ def aggregates(runs, baseline: str) -> tuple[list[str], dict[str, aggregate.Task
     return lines, normalized
 
 
-def speed(runs, baseline: str) -> list[str]:
-    lines = ["| task | variant | steps/CPU-s (vs baseline) | steps/wall-s (vs baseline) | best-so-far at the baseline's "
-             "CPU time (vs baseline) | CPU min per run (+ evaluation) |", "|---|---|---|---|---|---|"]  # fmt: skip
+def speed(runs: Runs, baseline: str) -> list[str]:
+    """Per task: the baseline's steps per CPU-second (wall-clock) and CPU minutes per run; per other variant, its
+    speed per CPU-second (wall-clock) and best-so-far return within the baseline's mean CPU time, both as ratios to
+    the baseline's, and its CPU minutes per run."""
+    variants = [v for v in _variants(runs) if v != baseline]
+    lines = [f"| task | {baseline}: steps/CPU-s (wall), CPU min | "
+             + " | ".join(f"{v}: speed (wall), best at {baseline}'s CPU time, CPU min" for v in variants) + " |",
+             "|---" * (len(variants) + 2) + "|"]  # fmt: skip
+
+    def mean(values: list[float]) -> float:
+        return float(np.mean(values)) if values else np.nan
+
     for task, by_variant in runs.items():
         base_runs = by_variant.get(baseline, [])
-        base_cpu = np.mean([r["cpu_seconds"] for r in base_runs]) if base_runs else np.nan
-        base_speed = np.mean([r["steps_per_cpu_second"] for r in base_runs]) if base_runs else np.nan
-        base_wall = np.mean([r["steps_per_wall_second"] for r in base_runs]) if base_runs else np.nan
-        base_best = np.mean([best_so_far_at(r, base_cpu) for r in base_runs]) if base_runs else np.nan
-        for variant, variant_runs in by_variant.items():
-            cpu_speed = np.mean([r["steps_per_cpu_second"] for r in variant_runs])
-            wall_speed = np.mean([r["steps_per_wall_second"] for r in variant_runs])
-            best = np.mean([best_so_far_at(r, base_cpu) for r in variant_runs]) if base_runs else np.nan
-            minutes = np.mean([r["cpu_seconds"] for r in variant_runs]) / 60
-            evaluating = np.mean([r["eval_cpu_seconds"] for r in variant_runs]) / 60
-            lines.append(f"| {task} | {variant} | {cpu_speed:.0f} ({cpu_speed / base_speed:.2f}x) | {wall_speed:.0f} "
-                         f"({wall_speed / base_wall:.2f}x) | {best:.0f} ({best / base_best:.2f}x) | "
-                         f"{minutes:.1f} (+{evaluating:.1f}) |")  # fmt: skip
+        base_cpu = mean([r["cpu_seconds"] for r in base_runs])
+        base_speed = mean([r["steps_per_cpu_second"] for r in base_runs])
+        base_wall = mean([r["steps_per_wall_second"] for r in base_runs])
+        base_best = mean([best_so_far_at(r, base_cpu) for r in base_runs])
+        cells = [f"{base_speed:.0f} ({base_wall:.0f}), {base_cpu / 60:.0f}" if base_runs else "—"]
+        for variant in variants:
+            variant_runs = by_variant.get(variant, [])
+            if not variant_runs or not base_runs:
+                cells.append("—")
+                continue
+            cpu_speed = mean([r["steps_per_cpu_second"] for r in variant_runs]) / base_speed
+            wall_speed = mean([r["steps_per_wall_second"] for r in variant_runs]) / base_wall
+            best = mean([best_so_far_at(r, base_cpu) for r in variant_runs])
+            best_ratio = f"{best / base_best:.2f}x" if np.isfinite(best) and base_best > 0 else "—"
+            minutes = mean([r["cpu_seconds"] for r in variant_runs]) / 60
+            cells.append(f"{cpu_speed:.2f}x ({wall_speed:.2f}x), {best_ratio}, {minutes:.0f}")
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -182,17 +196,20 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
                 wall[key] = float(np.mean([p["wall_s"] for p in progress[key]])) / steps * campaign.timesteps
                 extrapolated += 1
             done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
+            same_variant = [k for k in cpu if k[1] == key[1]]
+            if key not in cpu and same_variant:  # the variant's mean over the tasks where its time is known
+                cpu[key] = float(np.mean([cpu[k] for k in same_variant]))
+                wall[key] = float(np.mean([wall[k] for k in same_variant]))
             if key not in cpu:
                 unknown += not done
                 continue
             total += cpu[key]
             remaining += 0.0 if done else wall[key]
-    text = (f"Expected duration: about {total / 3600:.0f} CPU-hours for the runs whose time is known, "
-            f"{remaining / 3600 / workers:.0f} wall-clock hours left on {workers} workers (completed runs' mean time "
-            "per task and variant; where none completed, extrapolated from a running trial's progress, training "
-            "only).")  # fmt: skip
+    text = (f"Expected duration: about {total / 3600:.0f} CPU-hours, {remaining / 3600 / workers:.0f} wall-clock hours "
+            f"left on {workers} workers (completed runs' mean time per task and variant, else a running trial's "
+            "progress extrapolated, else the variant's mean over tasks).")  # fmt: skip
     if unknown:
-        text += f" {unknown} runs of tasks and variants not started yet are not counted."
+        text += f" Not counted: {unknown} runs of variants with no run yet."
     return text
 
 
@@ -257,8 +274,7 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
          f"ratio to {baseline}'s mean{beside}:"],
         table(runs, baseline, paper),
-        [f"Over tasks, baseline-normalized (each run's max average return / {baseline}'s mean on its task), "
-         "stratified bootstrap over seeds:"],
+        [f"Over tasks (each run's max average return / {baseline}'s mean on its task; 95 % CIs by stratified bootstrap):"],
         aggregate_lines,
     ]  # fmt: skip
     if paper:
@@ -267,8 +283,7 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
             ["The paper's ratios to its PPO, mean over its six tasks: " + ", ".join(f"{v} {r:.2f}" for v, r in ratios.items())]
         )
     sections += [
-        ["Speed (env steps per CPU-second of each run's process, evaluations excluded; wall-clock beside) and "
-         f"the best-so-far return within {baseline}'s mean CPU time on the task:"],
+        [f"Speed (env steps per CPU-second, evaluations apart; wall-clock beside), best return in {baseline}'s CPU time:"],
         speed(runs, baseline),
         [expected_duration(runs, progress, campaigns, workers)],
     ]  # fmt: skip

@@ -83,19 +83,14 @@ def paper_protocol(algorithm: str = "ppo_pevfa", **overrides: Any) -> dict[str, 
 #: How this package's paper protocol, and the campaign that runs it (``benchmarks/campaign.py``), differ from the
 #: paper's runs
 PAPER_DEVIATIONS = (
-    "Task versions: Gymnasium's -v5 MuJoCo tasks (today's mujoco bindings) instead of gym 0.9.1's -v1 (mujoco-py "
-    "0.5.4, MJPRO131), and LunarLanderContinuous-v3 instead of LunarLander-v2 (the paper's continuous-action "
-    "LunarLander): absolute returns are not comparable with the paper's, ratios to each one's PPO are.",
-    "Budget: 1M env steps per run on every task instead of 2M (4M on Ant), and 5 seeds (10 in the paper) until the "
-    "second batch of seeds runs.",
-    "The Gaussian's mean is SB3's linear output, not tanh-activated (SB3's policy classes have no tanh on the mean "
-    "without gSDE); SB3 clips the sampled action to the action space's bounds before the env step.",
-    "An iteration is exactly 2000 env steps (the paper: '5 episodes or 2000 time steps'); the 2000 samples go in "
-    "minibatches of 128, the last of 80.",
-    "Advantages are normalized per minibatch (SB3's default; the paper does not say); Adam's epsilon is SB3's 1e-5; "
-    "weights start from PyTorch's default initialization (no orthogonal initialization).",
-    "Monte-Carlo value targets are the discounted returns to the end of the episode, bootstrapped with the critic "
-    "where the 2000-step rollout cuts an episode or a time limit truncates it.",
-    "Evaluation: every 20k env steps, 10 episodes with the deterministic (mean) action, on a separate env seeded with "
-    "the run's seed + 10000. Max average return = the best of these evaluations.",
+    "Tasks: Gymnasium's -v5 MuJoCo tasks and LunarLanderContinuous-v3 (the paper: gym 0.9.1's -v1 on mujoco-py 0.5.4, "
+    "LunarLander-v2); absolute returns do not compare, ratios to each one's PPO do.",
+    "1M env steps per run (the paper: 2M, 4M on Ant); 5 seeds until seeds 5-9 run (the paper: 10).",
+    "The Gaussian's mean is linear, not tanh-activated (SB3's policy classes); SB3 clips actions to the Box.",
+    "Iterations of exactly 2000 steps (the paper: 5 episodes or 2000 steps), in minibatches of 128, the last of 80.",
+    "Where the paper is silent, SB3's choices: advantages normalized per minibatch, Adam's epsilon 1e-5; and "
+    "PyTorch's default initialization (no orthogonal one).",
+    "Monte-Carlo targets are bootstrapped with the critic where the rollout cuts an episode or a time limit ends it.",
+    "Evaluation every 20k steps: 10 deterministic episodes on an env seeded with the run's seed + 10000; max average "
+    "return = the best evaluation.",
 )

@@ -10,6 +10,7 @@ import sys
 ROOT = pathlib.Path(__file__).parents[1]
 DOCS = ROOT / "docs"
 README_MAX_WORDS = 700
+RESULTS_MAX_WORDS = 2500
 
 
 def pages() -> list[pathlib.Path]:
@@ -134,6 +135,25 @@ def test_no_issue_references():
 def test_readme_is_short():
     words = len((ROOT / "README.md").read_text().split())
     assert words <= README_MAX_WORDS, f"README.md has {words} words (at most {README_MAX_WORDS})"
+
+
+def words(text: str) -> int:
+    """Words a reader reads: tokens with a letter or a digit outside code blocks (not a table's pipes and rules)."""
+    return sum(1 for token in without_code_blocks(text).split() if re.search(r"[^\W_]", token))
+
+
+def with_includes(page: pathlib.Path) -> str:
+    """A page's text with the files its MyST ``{include}`` directives pull in."""
+    text = page.read_text()
+    for target in re.findall(r"^```\{include\}\s+(\S+)", text, flags=re.MULTILINE):
+        text += "\n" + (page.parent / target).read_text()
+    return text
+
+
+def test_results_pages_are_short():
+    counts = {page.name: words(with_includes(page)) for page in sorted(DOCS.glob("results-*.md"))}
+    assert len(counts) == 3 and sum(counts.values()) <= RESULTS_MAX_WORDS, counts
+    assert words("| a | 12 ± 3 |\n|---|---|\n```bash\nnot counted\n```\n") == 3
 
 
 def test_every_result_file_is_cited_and_every_cited_result_exists():
