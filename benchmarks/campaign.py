@@ -296,8 +296,10 @@ def open_study(
     if name not in existing and expected is None:
         raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give --protocol, --tasks, "
                          "--variants, --seeds and --timesteps to define a new one")  # fmt: skip
-    # load_if_exists: another machine may create it at the same moment
-    study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
+    if name in existing:
+        study = optuna.load_study(study_name=name, storage=storage)
+    else:  # load_if_exists: another machine may create it at the same moment
+        study = optuna.create_study(study_name=name, storage=storage, direction="maximize", load_if_exists=True)
     stored = study.user_attrs.get("campaign")
     if stored is None:  # new (or created by a machine that has not stored its definition yet: the same command's)
         if expected is None:
