@@ -52,9 +52,11 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import KVWriter, Logger
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
 from sb3_pevfa.protocols import paper_protocol
 
 try:  # Optuna >= 4.9's names of the callback that enqueues a stale trial again, and of RDBStorage's argument
@@ -96,6 +98,9 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         "opr-cl": paper_protocol("ppo_pevfa", representation_objectives=("cl",)),
         "spr-e2e": paper_protocol("ppo_pevfa", representation="spr"),
         "fingerprint-e2e": paper_protocol("ppo_pevfa", representation="fingerprint"),
+        # OPR-E2E with the local-generalization diagnostic (paper Fig. 3b / 8): a conventional critic of the paper's
+        # PPO (2x128 ReLU, its learning rate) trained beside it; the diagnostic's critic counts in its CPU time
+        "opr-e2e+local-generalization": paper_protocol("ppo_pevfa"),
     },
     "sb3": {
         "ppo": None,
@@ -104,6 +109,10 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         "fingerprint": dict(representation="fingerprint"),
     },
 }
+
+
+#: Variants that run a diagnostic beside their training: variant -> the callback's constructor arguments
+LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128))}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,7 +227,12 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         model = make_model(campaign.protocol, variant, env, seed)
     callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes)
-    model.learn(campaign.timesteps, callback=callback)
+    callbacks: list[BaseCallback] = [callback]
+    logged = MemoryOutput()
+    if variant in LOCAL_GENERALIZATION:
+        model.set_logger(Logger(folder=None, output_formats=[logged]))
+        callbacks.append(LocalGeneralizationCallback(**LOCAL_GENERALIZATION[variant]))
+    model.learn(campaign.timesteps, callback=callbacks)
     cpu = time.process_time() - callback.start_cpu - callback.eval_cpu
     wall = time.perf_counter() - callback.start_wall - callback.eval_wall
     curve = callback.curve
@@ -236,8 +250,25 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         "steps_per_cpu_second": model.num_timesteps / cpu,
         "steps_per_wall_second": model.num_timesteps / wall,
         "arguments": resolved_arguments(model),
+        **({"local_generalization": logged.series("pevfa/local_gen/")} if variant in LOCAL_GENERALIZATION else {}),
         **provenance(),
     }
+
+
+class MemoryOutput(KVWriter):
+    """An SB3 logger output that keeps every dumped row in memory."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, Any], step: int = 0) -> None:
+        self.rows.append(dict(key_values))
+
+    def series(self, prefix: str) -> dict[str, list[float]]:
+        """The keys under ``prefix`` (prefix removed), over the rows that log them."""
+        rows = [row for row in self.rows if any(key.startswith(prefix) for key in row)]
+        keys = sorted({key for row in rows for key in row if key.startswith(prefix)})
+        return {key[len(prefix) :]: [float(row.get(key, np.nan)) for row in rows] for key in keys}
 
 
 def resolved_arguments(model: PPO) -> dict[str, str]:

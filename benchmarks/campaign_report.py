@@ -175,6 +175,29 @@ def speed(runs: Runs, baseline: str) -> list[str]:
     return lines
 
 
+def local_generalization(runs: Runs) -> list[str]:
+    """Per task and variant with the diagnostic: the PeVFA's and the conventional critic's errors against the
+    Monte-Carlo returns of each new policy before and after the iteration's critic update (paper Fig. 3b / 8)."""
+    lines = ["| task | variant | runs | iterations | error before update, PeVFA / VFA (median ratio) | PeVFA closer before "
+             "| error after update, PeVFA / VFA |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for task, by_variant in runs.items():
+        for variant, variant_runs in by_variant.items():
+            series = [r["local_generalization"] for r in variant_runs if "local_generalization" in r]
+            if not series:
+                continue
+            errors = {key: np.concatenate([np.asarray(s[key], float) for s in series]) for key in
+                      ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after")}  # fmt: skip
+            valid = np.all([np.isfinite(e) for e in errors.values()], axis=0)
+            errors = {key: value[valid] for key, value in errors.items()}
+            ratio = np.median(errors["pevfa_before"] / errors["vfa_before"])
+            closer = np.mean(errors["pevfa_before"] < errors["vfa_before"])
+            mean = {key: f"{np.mean(value):.3g}" for key, value in errors.items()}
+            before = f"{mean['pevfa_before']} / {mean['vfa_before']} ({ratio:.2f})"
+            after = f"{mean['pevfa_after']} / {mean['vfa_after']}"
+            lines.append(f"| {task} | {variant} | {len(series)} | {int(valid.sum())} | {before} | {closer:.0%} | {after} |")
+    return lines if len(lines) > 2 else []
+
+
 def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
     """The campaigns' CPU time and the wall-clock time left: per task and variant, the completed runs' mean, else
     extrapolated from running trials' progress (training only); grid points with neither are counted apart."""
@@ -287,6 +310,10 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         speed(runs, baseline),
         [expected_duration(runs, progress, campaigns, workers)],
     ]  # fmt: skip
+    diagnostic = local_generalization(runs)
+    if diagnostic:
+        sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error against each new policy's "
+                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it:"], diagnostic]  # fmt: skip
     if paper:
         sections += [["Deviations from the paper:"], [f"- {d}" for d in PAPER_DEVIATIONS]]
     libraries = ", ".join(f"{name} {versions[name]}" for name in ("torch", "stable_baselines3", "gymnasium", "mujoco"))

@@ -196,3 +196,15 @@ def test_report_statistics_by_hand():
     fixed = campaign_report.aggregate.stratified_bootstrap_ci(campaign_report.aggregate.normalized(scores, base))
     low, high = campaign_report.aggregate.normalized_bootstrap_ci(scores, base)
     assert high - low > 2 * (fixed[1] - fixed[0]) and low < 2.0 < high
+
+
+def test_local_generalization_diagnostic_in_a_trial_and_the_report():
+    tiny = campaign.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 2)
+    series = campaign.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
+    assert series["timesteps"] == [2000.0, 4000.0, 6000.0]  # every iteration, the last one at the end of training
+    assert all(len(series[key]) == 3 and min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after"))
+    assert series["vfa_after"] != series["vfa_before"]  # the conventional critic trains beside the run
+    by_hand = {"pevfa_before": [1.0, 4.0, 3.0, np.nan], "vfa_before": [2.0, 2.0, 1.0, 1.0],
+               "pevfa_after": [1.0, 1.0, 1.0, 1.0], "vfa_after": [3.0, 1.0, 2.0, 1.0]}  # fmt: skip
+    rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
+    assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]  # the iteration with a NaN left out
