@@ -68,7 +68,8 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
                 notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
-    return runs, progress, notes, campaigns
+    order = list(dict.fromkeys(task for campaign in campaigns for task in campaign.tasks))
+    return {task: runs[task] for task in order if task in runs}, progress, notes, campaigns
 
 
 def best_so_far_at(run: dict[str, Any], cpu: float) -> float:
