@@ -11,8 +11,9 @@ repository, so a campaign resumes from git on any machine; ``--storage postgresq
 any number of machines pull trials from one database, with Optuna's heartbeat failing the trials of dead workers and
 ``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials whose
 worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each again;
-a trial stopped by SIGINT/SIGTERM is enqueued again too. A trial whose training raised stays failed (the report lists
-it). A task, variant and seed counts once in the report, however often it ran.
+a trial stopped by SIGINT/SIGTERM is enqueued again too, and goes on from its last checkpoint where the machine kept
+it. A trial whose training raised stays failed (the report lists it). A task, variant and seed counts once in the
+report, however often it ran.
 
     # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
     nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &
@@ -25,17 +26,22 @@ it). A task, variant and seed counts once in the report, however often it ran.
 """
 
 import argparse
+import contextlib
 import dataclasses
 import functools
+import hashlib
 import inspect
+import json
 import os
 import pathlib
+import shutil
 import signal
 import socket
 import subprocess
 import sys
 import time
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -83,6 +89,10 @@ TABLE1_TASKS = (
 )
 #: A retried trial is enqueued again at most this many times
 MAX_RETRY = 3
+#: Where a running trial keeps its checkpoint: outside the work tree, which a new session may lay anew
+CHECKPOINT_DIR = pathlib.Path(os.environ.get("SB3_PEVFA_CHECKPOINTS", pathlib.Path.home() / ".cache" / "sb3-pevfa"))
+#: Env steps between two checkpoints of a running trial
+CHECKPOINT_FREQ = 100_000
 #: The evaluation env of seed s is seeded with s + this (the training env with s)
 EVAL_SEED_OFFSET = 10_000
 #: Today's cheaper schedule of historical updates (PPOPeVFA's defaults): 256 samples of 8 policies per 40 steps
@@ -155,6 +165,11 @@ class Campaign:
         return {**dataclasses.asdict(self), "tasks": list(self.tasks), "variants": list(self.variants),
                 "seeds": list(self.seeds), "settings": settings}  # fmt: skip
 
+    def checkpoint_folder(self, name: str) -> pathlib.Path:
+        """Where the running trials of this campaign (under this study name) keep their checkpoints."""
+        digest = hashlib.sha1(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:10]
+        return CHECKPOINT_DIR / f"{name}-{digest}"
+
     @classmethod
     def from_definition(cls, definition: dict[str, Any]) -> "Campaign":
         fields = {f.name for f in dataclasses.fields(cls)}
@@ -181,24 +196,58 @@ CAMPAIGNS: dict[str, Campaign] = {
 # ---------------------------------------------------------------------------------------------- one training
 class CurveCallback(BaseCallback):
     """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` deterministic episodes (SB3's
-    ``evaluate_policy``), records the training's CPU and wall-clock seconds so far (evaluations excluded), and reports
-    the mean return to the Optuna trial, with a heartbeat."""
+    ``evaluate_policy``), records the training's CPU and wall-clock seconds so far (evaluations and checkpoints apart),
+    and reports the mean return to the Optuna trial, with a heartbeat. With a ``checkpoint`` folder, it saves the model,
+    its history and its own state there at the first iteration boundary after every ``checkpoint_freq`` env steps;
+    ``state`` is such a saved state, to go on from."""
 
-    def __init__(self, eval_env: VecEnv, trial: optuna.Trial | None, eval_freq: int, n_eval_episodes: int):
+    def __init__(
+        self,
+        eval_env: VecEnv,
+        trial: optuna.Trial | None,
+        eval_freq: int,
+        n_eval_episodes: int,
+        checkpoint: pathlib.Path | None = None,
+        checkpoint_freq: int = 0,
+        state: dict[str, Any] | None = None,
+    ):
         super().__init__()
         self.eval_env, self.trial, self.eval_freq, self.n_eval_episodes = eval_env, trial, eval_freq, n_eval_episodes
-        self.curve: dict[str, list[float]] = {"steps": [], "mean": [], "std": [], "cpu_s": [], "wall_s": []}
-        self.eval_cpu = self.eval_wall = 0.0
+        self.checkpoint, self.checkpoint_freq = checkpoint, checkpoint_freq
+        state = state or {}
+        self.curve: dict[str, list[float]] = state.get("curve", {k: [] for k in ("steps", "mean", "std", "cpu_s", "wall_s")})
+        self.before = {key: state.get(key, 0.0) for key in ("cpu", "wall", "eval_cpu", "eval_wall")}
+        self.segment_eval_cpu = self.segment_eval_wall = 0.0
         self.start_cpu, self.start_wall = time.process_time(), time.perf_counter()
+        self.next_checkpoint = (state.get("timesteps", 0) // checkpoint_freq + 1) * checkpoint_freq if checkpoint_freq else 0
+
+    @property
+    def eval_cpu(self) -> float:
+        return self.before["eval_cpu"] + self.segment_eval_cpu
+
+    @property
+    def eval_wall(self) -> float:
+        return self.before["eval_wall"] + self.segment_eval_wall
+
+    def training_time(self) -> tuple[float, float]:
+        """CPU and wall-clock seconds of training so far, over every segment of the run."""
+        cpu = self.before["cpu"] + time.process_time() - self.start_cpu - self.segment_eval_cpu
+        return cpu, self.before["wall"] + time.perf_counter() - self.start_wall - self.segment_eval_wall
+
+    @contextlib.contextmanager
+    def apart(self) -> Iterator[None]:
+        """Time spent inside is not training time."""
+        cpu, wall = time.process_time(), time.perf_counter()
+        yield
+        self.segment_eval_cpu += time.process_time() - cpu
+        self.segment_eval_wall += time.perf_counter() - wall
 
     def _on_step(self) -> bool:
-        if self.n_calls % self.eval_freq:
+        if self.num_timesteps % self.eval_freq:
             return True
-        cpu, wall = time.process_time(), time.perf_counter()
-        train_cpu, train_wall = cpu - self.start_cpu - self.eval_cpu, wall - self.start_wall - self.eval_wall
-        returns, _ = evaluate_policy(self.model, self.eval_env, self.n_eval_episodes, return_episode_rewards=True)
-        self.eval_cpu += time.process_time() - cpu
-        self.eval_wall += time.perf_counter() - wall
+        train_cpu, train_wall = self.training_time()
+        with self.apart():
+            returns, _ = evaluate_policy(self.model, self.eval_env, self.n_eval_episodes, return_episode_rewards=True)
         returns = np.asarray(returns, dtype=float)
         point = (self.num_timesteps, float(returns.mean()), float(returns.std()), train_cpu, train_wall)
         for key, value in zip(self.curve, point):
@@ -209,6 +258,46 @@ class CurveCallback(BaseCallback):
             self.trial.set_user_attr("progress", {"steps": self.num_timesteps, "cpu_s": train_cpu, "wall_s": train_wall})
         return True
 
+    def _on_rollout_start(self) -> None:
+        if self.checkpoint is None or not self.checkpoint_freq or self.num_timesteps < self.next_checkpoint:
+            return
+        with self.apart():
+            save_checkpoint(self.checkpoint, self.model, self.state())
+        self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+
+    def state(self) -> dict[str, Any]:
+        cpu, wall = self.training_time()
+        return {"timesteps": self.num_timesteps, "curve": self.curve, "cpu": cpu, "wall": wall,
+                "eval_cpu": self.eval_cpu, "eval_wall": self.eval_wall}  # fmt: skip
+
+
+def save_checkpoint(folder: pathlib.Path, model: PPO, state: dict[str, Any]) -> None:
+    """The model, its history and ``state``, each file replaced whole (a kill leaves the previous one or the new one;
+    the state, written last, names the steps the model must have)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(folder / "model.tmp.zip")
+    os.replace(folder / "model.tmp.zip", folder / "model.zip")
+    if isinstance(model, PPOPeVFA):
+        model.save_history(folder / "history.tmp.npz")
+        os.replace(folder / "history.tmp.npz", folder / "history.npz")
+        state = {**state, "n_policies": model.history.n_policies}
+    (folder / "state.tmp.json").write_text(json.dumps(state))
+    os.replace(folder / "state.tmp.json", folder / "state.json")
+
+
+def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together."""
+    if folder is None or not (folder / "state.json").exists():
+        return None
+    state = json.loads((folder / "state.json").read_text())
+    algorithm = PPO if VARIANTS[protocol][variant] is None else PPOPeVFA
+    model = algorithm.load(folder / "model.zip", env=env)
+    if isinstance(model, PPOPeVFA):
+        model.load_history(folder / "history.npz")
+        if model.history.n_policies != state["n_policies"]:
+            return None
+    return (model, state) if model.num_timesteps == state["timesteps"] else None
+
 
 def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
     """The model of one grid point (``VARIANTS``)."""
@@ -218,24 +307,29 @@ def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
     return PPOPeVFA("MlpPolicy", env, seed=seed, **arguments)
 
 
-def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None) -> dict[str, Any]:
-    """Train one grid point with evaluations; returns what the trial stores."""
+def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None,
+          checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ) -> dict[str, Any]:  # fmt: skip
+    """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
+    goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
+    env steps; the folder is removed when the run is complete."""
     th.set_num_threads(1)
     env = make_vec_env(task, n_envs=1, seed=seed)
     eval_env = make_vec_env(task, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
     with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
-        model = make_model(campaign.protocol, variant, env, seed)
-    callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes)
+        resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)
+        model, state = resumed or (make_model(campaign.protocol, variant, env, seed), {})
+    callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq, state)
     callbacks: list[BaseCallback] = [callback]
     logged = MemoryOutput()
     if variant in LOCAL_GENERALIZATION:
         model.set_logger(Logger(folder=None, output_formats=[logged]))
         callbacks.append(LocalGeneralizationCallback(**LOCAL_GENERALIZATION[variant]))
-    model.learn(campaign.timesteps, callback=callbacks)
-    cpu = time.process_time() - callback.start_cpu - callback.eval_cpu
-    wall = time.perf_counter() - callback.start_wall - callback.eval_wall
+    model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
+    cpu, wall = callback.training_time()
     curve = callback.curve
+    if checkpoint is not None:
+        shutil.rmtree(checkpoint, ignore_errors=True)
     env.close()
     eval_env.close()
     return {
@@ -250,6 +344,7 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         "steps_per_cpu_second": model.num_timesteps / cpu,
         "steps_per_wall_second": model.num_timesteps / wall,
         "arguments": resolved_arguments(model),
+        "resumed_from": state.get("timesteps", 0),
         **({"local_generalization": logged.series("pevfa/local_gen/")} if variant in LOCAL_GENERALIZATION else {}),
         **provenance(),
     }
@@ -448,7 +543,8 @@ def objective(campaign: Campaign):
                 raise optuna.TrialPruned()
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": _boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
-            result = train(campaign, task, variant, seed, trial)
+            folder = campaign.checkpoint_folder(trial.study.study_name) / f"{task}_{variant}_seed{seed}"
+            result = train(campaign, task, variant, seed, trial, checkpoint=folder)
             for key, value in result.items():
                 trial.set_user_attr(key, value)
         except (KeyboardInterrupt, SystemExit):

@@ -64,6 +64,9 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
             progress.setdefault((task, label), []).extend(running)
             if complete:
                 runs.setdefault(task, {}).setdefault(label, []).append({**complete[0].user_attrs, "seed": seed})
+                resumed = complete[0].user_attrs.get("resumed_from")
+                if resumed:
+                    notes.append(f"{task} {label} seed {seed} went on from its checkpoint at {resumed:,} steps")
                 if len(complete) > 1:
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):

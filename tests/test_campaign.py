@@ -1,6 +1,7 @@
 """Learning campaigns (benchmarks/campaign.py): a tiny grid through Optuna's journal storage, a killed worker's
 trial retried exactly once, a resume from the journal and the report from the storage alone."""
 
+import json
 import os
 import pathlib
 import signal
@@ -20,6 +21,13 @@ import campaign  # noqa: E402
 import campaign_report  # noqa: E402
 
 TASK = "InvertedPendulum-v5"
+
+
+@pytest.fixture(autouse=True)
+def checkpoints(tmp_path, monkeypatch):
+    """Trials keep their checkpoints in the test's folder (workers started as subprocesses too)."""
+    monkeypatch.setenv("SB3_PEVFA_CHECKPOINTS", str(tmp_path / "checkpoints"))
+    monkeypatch.setattr(campaign, "CHECKPOINT_DIR", tmp_path / "checkpoints")
 
 
 def _definition(*variants: str, seeds=("0",), timesteps: int = 4000) -> list[str]:
@@ -208,3 +216,29 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
                "pevfa_after": [1.0, 1.0, 1.0, 1.0], "vfa_after": [3.0, 1.0, 2.0, 1.0]}  # fmt: skip
     rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
     assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]  # the iteration with a NaN left out
+
+
+def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
+    tiny = campaign.Campaign("paper", (TASK,), ("opr-e2e",), (0,), 8000, 2000, 1)
+    folder = tmp_path / "checkpoint"
+    evaluate = campaign.evaluate_policy
+
+    def stopped_at_6000(model, *args, **kwargs):
+        if model.num_timesteps == 6000 and not (folder / "stopped").exists():
+            (folder / "stopped").touch()
+            raise KeyboardInterrupt  # the worker ends mid-rollout
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(campaign, "evaluate_policy", stopped_at_6000)
+    with pytest.raises(KeyboardInterrupt):
+        campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+    state = json.loads((folder / "state.json").read_text())
+    assert (
+        state["timesteps"] == 4000 and state["curve"]["steps"] == [2000, 4000] and state["n_policies"] == 3
+    )  # the third recorded as its rollout starts
+    result = campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+    assert result["resumed_from"] == 4000 and result["timesteps"] == 8000 and not folder.exists()
+    assert result["curve"]["steps"] == [2000, 4000, 6000, 8000] and result["curve"]["mean"][:2] == state["curve"]["mean"]
+    cpu = result["curve"]["cpu_s"]
+    assert cpu == sorted(cpu) and cpu[1] == state["curve"]["cpu_s"][1] and cpu[-1] < result["cpu_seconds"]
+    assert result["cpu_seconds"] > state["cpu"] and result["eval_cpu_seconds"] > state["eval_cpu"]
