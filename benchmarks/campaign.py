@@ -39,18 +39,21 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
+import learning
 import mujoco
 import numpy as np
 import optuna
 import sqlalchemy
 import stable_baselines3 as sb3
 import torch as th
+import training_logs
 from optuna.storages import JournalStorage, RDBStorage
 from optuna.storages.journal import JournalFileBackend
 from optuna.trial import FrozenTrial, TrialState
@@ -112,6 +115,8 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         # PPO (2x128 ReLU, its learning rate) trained beside it; the diagnostic's critic counts in its CPU time
         "opr-e2e+local-generalization": paper_protocol("ppo_pevfa"),
     },
+    # learning.py's variants, trained through rl-zoo3's entry point on one hyperparameter file (the campaign's conf)
+    "zoo": dict(learning.VARIANTS),
     "sb3": {
         "ppo": None,
         "opr": {},
@@ -137,6 +142,8 @@ class Campaign:
     timesteps: int
     eval_freq: int = 20_000
     eval_episodes: int = 10
+    #: protocol "zoo": the rl-zoo3 hyperparameter file of every variant, relative to the repository
+    conf: str | None = None
 
     def __post_init__(self) -> None:
         if self.protocol not in VARIANTS:
@@ -148,6 +155,10 @@ class Campaign:
             )
         if not (self.tasks and self.variants and self.seeds):
             raise ValueError("A campaign needs at least one task, one variant and one seed")
+        if (self.protocol == "zoo") != (self.conf is not None):
+            raise ValueError("protocol 'zoo' needs a conf (an rl-zoo3 hyperparameter file), and only it takes one")
+        if self.conf is not None and not (ROOT / self.conf).is_file():
+            raise ValueError(f"No hyperparameter file {self.conf!r} in the repository")
         if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0 or self.eval_freq > self.timesteps:
             raise ValueError("timesteps, eval_freq and eval_episodes must be positive, eval_freq at most timesteps")
 
@@ -162,8 +173,13 @@ class Campaign:
     def definition(self) -> dict[str, Any]:
         """What the study stores: the grid and, per variant, its constructor arguments as text."""
         settings = {variant: repr(VARIANTS[self.protocol][variant]) for variant in self.variants}
-        return {**dataclasses.asdict(self), "tasks": list(self.tasks), "variants": list(self.variants),
-                "seeds": list(self.seeds), "settings": settings}  # fmt: skip
+        definition = {**dataclasses.asdict(self), "tasks": list(self.tasks), "variants": list(self.variants),
+                      "seeds": list(self.seeds), "settings": settings}  # fmt: skip
+        if self.conf is None:
+            del definition["conf"]  # as campaigns stored it before the zoo protocol
+        else:
+            settings["conf"] = hashlib.sha1((ROOT / self.conf).read_bytes()).hexdigest()  # the file's content too
+        return definition
 
     def checkpoint_folder(self, name: str) -> pathlib.Path:
         """Where the running trials of this campaign (under this study name) keep their checkpoints."""
@@ -186,9 +202,14 @@ CAMPAIGNS: dict[str, Campaign] = {
     # (c) the other representations and objectives, then five more seeds
     "table1-variants": Campaign("paper", TABLE1_TASKS, ("random", "opr-cl", "spr-e2e"), tuple(range(5)), 1_000_000),
     "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
-    # the representations at SB3's PPO defaults (PPOPeVFA's defaults otherwise), 300k steps
-    "representations-sb3": Campaign(
-        "sb3", ("Hopper-v5", "Walker2d-v5"), ("ppo", "opr", "spr", "fingerprint"), tuple(range(5)), 300_000
+    # the representations at SB3's PPO defaults through rl-zoo3 (as docs/results-sb3-defaults.md), 300k steps
+    "representations-300k": Campaign(
+        "zoo",
+        ("Hopper-v5", "Walker2d-v5"),
+        ("ppo", "pevfa-opr", "pevfa-spr", "pevfa-fingerprint"),
+        tuple(range(5)),
+        300_000,
+        conf="benchmarks/hyperparams/learning.yml",
     ),
 }
 
@@ -312,6 +333,8 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
     goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
     env steps; the folder is removed when the run is complete."""
+    if campaign.protocol == "zoo":
+        return train_through_the_zoo(campaign, task, variant, seed, trial)
     th.set_num_threads(1)
     env = make_vec_env(task, n_envs=1, seed=seed)
     eval_env = make_vec_env(task, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
@@ -346,6 +369,45 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         "arguments": resolved_arguments(model),
         "resumed_from": state.get("timesteps", 0),
         **({"local_generalization": logged.series("pevfa/local_gen/")} if variant in LOCAL_GENERALIZATION else {}),
+        **provenance(),
+    }
+
+
+def train_through_the_zoo(
+    campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None
+) -> dict[str, Any]:
+    """One training through rl-zoo3's entry point (``learning.run``: its EvalCallback, deterministic episodes), as a
+    process of its own whose CPU time includes its evaluations; each evaluation's CPU time is the run's, prorated by
+    steps, and its wall-clock time comes from the Monitor file."""
+    with tempfile.TemporaryDirectory() as folder:
+        args = argparse.Namespace(conf=ROOT / campaign.conf, eval_freq=campaign.eval_freq,
+                                  eval_episodes=campaign.eval_episodes, out=pathlib.Path(folder))  # fmt: skip
+        line = learning.run(task, variant, seed, campaign.timesteps, args)
+        name = learning.run_name(task, variant, seed)
+        if not (args.out / f"{name}.json").exists():
+            raise RuntimeError(f"{line}\n{(args.out / f'{name}.err').read_text()[-3000:]}")
+        run = json.loads((args.out / f"{name}.json").read_text())
+        log = training_logs.parse_log((args.out / "runs" / name / "output.log").read_text(errors="replace"))
+    points = run["curve"]
+    curve = {"steps": [p["timesteps"] for p in points], "mean": [p["mean_return"] for p in points],
+             "std": [p["std_return"] for p in points], "cpu_s": [learning.cpu_seconds(run, p) for p in points],
+             "wall_s": [p["wall_s"] for p in points]}  # fmt: skip
+    if trial is not None:
+        for step, mean in zip(curve["steps"], curve["mean"]):
+            trial.report(mean, step)
+    return {
+        "curve": curve,
+        "max_average_return": max(curve["mean"]),
+        "final_return": curve["mean"][-1],
+        "timesteps": run["timesteps"],
+        "cpu_seconds": run["cpu_time_s"],
+        "wall_seconds": run["wall_time_s"],
+        "eval_cpu_seconds": 0.0,  # inside the run's own
+        "eval_wall_seconds": 0.0,
+        "steps_per_cpu_second": run["timesteps"] / run["cpu_time_s"],
+        "steps_per_wall_second": run["timesteps"] / run["wall_time_s"],
+        "arguments": {"command": run["command"], "options": repr(run["options"])},
+        "training_log": log,  # SB3's training tables, compactly (benchmarks/training_logs.py)
         **provenance(),
     }
 
@@ -658,6 +720,7 @@ def main(argv: list[str] | None = None) -> None:
     new.add_argument("--timesteps", type=int)
     new.add_argument("--eval-freq", type=int, default=20_000)
     new.add_argument("--eval-episodes", type=int, default=10)
+    new.add_argument("--conf", help="protocol zoo: the rl-zoo3 hyperparameter file of every variant (in the repository)")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     if args.protocol or args.tasks or args.variants or args.seeds or args.timesteps:
@@ -665,7 +728,7 @@ def main(argv: list[str] | None = None) -> None:
         if missing:
             parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
         given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
-                         args.eval_freq, args.eval_episodes)  # fmt: skip
+                         args.eval_freq, args.eval_episodes, args.conf)  # fmt: skip
         if len(args.campaign) > 1:
             parser.error("define one campaign at a time")
         open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)

@@ -53,6 +53,7 @@ VARIANTS: dict[str, dict | None] = {
     "pevfa-random": dict(representation="random"),
     "pevfa-opr": {},
     "pevfa-spr": dict(representation="spr"),
+    "pevfa-fingerprint": dict(representation="fingerprint"),
     "pevfa-opr-critic-first": dict(update_order="critic_first"),
     # CL on the historical updates' cadence (the default since CL's train_freq=None; every 10 env steps before)
     "pevfa-opr-cl": dict(representation_objectives=("cl",)),
