@@ -142,7 +142,8 @@ class Campaign:
     timesteps: int
     eval_freq: int = 20_000
     eval_episodes: int = 10
-    #: protocol "zoo": the rl-zoo3 hyperparameter file of every variant, relative to the repository
+    #: protocol "zoo": the rl-zoo3 hyperparameter file of every variant (relative to the repository); None: learning.py's
+    #: default file of each variant's base algorithm (``learning.CONFS``)
     conf: str | None = None
 
     def __post_init__(self) -> None:
@@ -155,8 +156,8 @@ class Campaign:
             )
         if not (self.tasks and self.variants and self.seeds):
             raise ValueError("A campaign needs at least one task, one variant and one seed")
-        if (self.protocol == "zoo") != (self.conf is not None):
-            raise ValueError("protocol 'zoo' needs a conf (an rl-zoo3 hyperparameter file), and only it takes one")
+        if self.protocol != "zoo" and self.conf is not None:
+            raise ValueError("only protocol 'zoo' takes a conf (an rl-zoo3 hyperparameter file)")
         if self.conf is not None and not (ROOT / self.conf).is_file():
             raise ValueError(f"No hyperparameter file {self.conf!r} in the repository")
         if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0 or self.eval_freq > self.timesteps:
@@ -177,9 +178,13 @@ class Campaign:
                       "seeds": list(self.seeds), "settings": settings}  # fmt: skip
         if self.conf is None:
             del definition["conf"]  # as campaigns stored it before the zoo protocol
-        else:
-            settings["conf"] = hashlib.sha1((ROOT / self.conf).read_bytes()).hexdigest()  # the file's content too
+        for variant in self.variants if self.protocol == "zoo" else ():  # the files' contents too
+            settings[f"{variant} conf"] = hashlib.sha1(self.conf_of(variant).read_bytes()).hexdigest()
         return definition
+
+    def conf_of(self, variant: str) -> pathlib.Path:
+        """Protocol zoo: the hyperparameter file ``variant`` trains with."""
+        return ROOT / self.conf if self.conf else learning.CONFS[learning.base_algorithm(variant)]
 
     def checkpoint_folder(self, name: str) -> pathlib.Path:
         """Where the running trials of this campaign (under this study name) keep their checkpoints."""
@@ -380,7 +385,7 @@ def train_through_the_zoo(
     process of its own whose CPU time includes its evaluations; each evaluation's CPU time is the run's, prorated by
     steps, and its wall-clock time comes from the Monitor file."""
     with tempfile.TemporaryDirectory() as folder:
-        args = argparse.Namespace(conf=ROOT / campaign.conf, eval_freq=campaign.eval_freq,
+        args = argparse.Namespace(conf=campaign.conf_of(variant), eval_freq=campaign.eval_freq,
                                   eval_episodes=campaign.eval_episodes, out=pathlib.Path(folder))  # fmt: skip
         line = learning.run(task, variant, seed, campaign.timesteps, args)
         name = learning.run_name(task, variant, seed)
@@ -408,6 +413,7 @@ def train_through_the_zoo(
         "steps_per_wall_second": run["timesteps"] / run["wall_time_s"],
         "arguments": {"command": run["command"], "options": repr(run["options"])},
         "training_log": log,  # SB3's training tables, compactly (benchmarks/training_logs.py)
+        "zoo_run": run,  # learning.py's record of the run
         **provenance(),
     }
 

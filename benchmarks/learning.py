@@ -4,13 +4,13 @@ Every (env, variant, seed) is one rl-zoo3 training (``python -m sb3_pevfa.train 
 reading the same config file per base algorithm (``benchmarks/hyperparams/learning.yml``: SB3's PPO defaults;
 ``learning_a2c.yml``: SB3's A2C defaults); PeVFA variants add only their PeVFA options (``--hyperparams``).
 rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes`` deterministic episodes); its
-``evaluations.npz`` is turned into one JSON file per run, so an interrupted sweep loses at most the runs in flight,
-and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one torch thread each.
+``evaluations.npz`` becomes one JSON file per run. The runs are scheduled by the campaign engine (``campaign.py``,
+protocol ``zoo``): one Optuna study per invocation in ``<out>/campaign.journal``, ``--workers`` processes with one torch
+thread each, an interrupted sweep resumed by the same command (the runs of dead workers enqueued again); the
+finished runs are written to ``<out>`` as JSON, and tasks, variants and seeds whose runs all have one are skipped.
 
     # SB3's defaults (docs/results-sb3-defaults.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4
-    # the paper's protocol (Table 1): six tasks, 2M steps (Ant 4M), 10 seeds, all variants
-    python benchmarks/learning.py --paper
     # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
     python benchmarks/learning.py --report --out runs/learning --plot runs/learning.png
     # runs of several invocations on machines of different speeds: per-second views against each seed's PPO run
@@ -21,6 +21,7 @@ and runs whose JSON exists are skipped. Runs go ``--workers`` at a time, one tor
 """
 
 import argparse
+import hashlib
 import inspect
 import json
 import os
@@ -29,7 +30,6 @@ import shutil
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import aggregate
 import numpy as np
@@ -93,17 +93,6 @@ VARIANTS: dict[str, dict | None] = {
     "a2c": None,
     "a2c-pevfa-opr": {},
 }
-
-#: The paper's Table 1 protocol, in today's task versions: task -> steps (10 seeds, every variant).
-PAPER_TASKS = {
-    "HalfCheetah-v5": 2_000_000,
-    "Hopper-v5": 2_000_000,
-    "Walker2d-v5": 2_000_000,
-    "Ant-v5": 4_000_000,
-    "InvertedDoublePendulum-v5": 2_000_000,
-    "LunarLanderContinuous-v3": 2_000_000,  # needs gymnasium[box2d]
-}
-PAPER_VARIANTS = ["ppo", "pevfa-random", "pevfa-opr", "pevfa-opr-cl", "pevfa-spr", "pevfa-spr-aux"]
 
 
 def run_name(env_id: str, variant: str, seed: int) -> str:
@@ -467,6 +456,40 @@ def plot(out: pathlib.Path, png: pathlib.Path) -> None:
     fig.savefig(png, dpi=100)
 
 
+def schedule(args: argparse.Namespace) -> None:
+    """The requested runs without a JSON in ``--out``, as a campaign of protocol zoo (the study named by its
+    definition, in ``<out>/campaign.journal``), then every finished run of it written to ``--out``."""
+    import campaign
+
+    missing = [(t, v, s) for t in args.env for v in args.variants for s in args.seeds
+               if not (args.out / f"{run_name(t, v, s)}.json").exists()]  # fmt: skip
+    if not missing:
+        return
+    conf = None if args.conf is None else str(args.conf.resolve())
+    grid = campaign.Campaign("zoo", *(tuple(dict.fromkeys(p[i] for p in missing)) for i in range(3)), args.timesteps,
+                             args.eval_freq, args.eval_episodes, conf)  # fmt: skip
+    digest = hashlib.sha1(json.dumps(grid.definition(), sort_keys=True).encode()).hexdigest()[:10]
+    name, journal = f"learning-{digest}", str(args.out / "campaign.journal")
+    study, _ = campaign.open_study(name, campaign.storage_of(name, journal), grid)
+    try:
+        campaign.run([name], journal, args.workers, stale_after=1800.0)
+    finally:
+        export(study, args.out)
+
+
+def export(study, out: pathlib.Path) -> None:
+    """Every complete trial's run as ``<out>/<run>.json`` and its training tables as ``<out>/logs/<run>.json``."""
+    for trial in study.get_trials(deepcopy=False):
+        run = trial.user_attrs.get("zoo_run")
+        if trial.state.name != "COMPLETE" or run is None:
+            continue
+        name = run_name(run["env"], run["variant"], run["seed"])
+        if not (out / f"{name}.json").exists():
+            (out / f"{name}.json").write_text(json.dumps(run, indent=1))
+            (out / "logs").mkdir(exist_ok=True)
+            (out / "logs" / f"{name}.json").write_text(json.dumps(trial.user_attrs["training_log"]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
@@ -478,7 +501,6 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="runs at a time (default: the cores)")
     parser.add_argument("--conf", type=pathlib.Path, default=None, help="rl-zoo3 hyperparameters shared by all variants")
     parser.add_argument("--baseline", default="ppo", choices=list(VARIANTS), help="the variant the report compares to")
-    parser.add_argument("--paper", action="store_true", help="the paper's protocol: its six tasks, 2M steps, 10 seeds")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
     parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
@@ -486,22 +508,9 @@ def main() -> None:
         "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
     )
     args = parser.parse_args()
-    if args.paper:
-        tasks, args.variants, args.seeds = dict(PAPER_TASKS), PAPER_VARIANTS, list(range(10))
-    else:
-        tasks = {env_id: args.timesteps for env_id in args.env}
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.report:
-        jobs = [
-            (env_id, variant, seed, steps, args)
-            for seed in args.seeds
-            for env_id, steps in tasks.items()
-            for variant in args.variants
-            if not (args.out / f"{run_name(env_id, variant, seed)}.json").exists()
-        ]
-        with ThreadPoolExecutor(args.workers) as pool:  # threads only wait on the training processes
-            for message in pool.map(lambda job: run(*job), jobs):
-                print(message, flush=True)
+        schedule(args)
     print(report(args.out, args.baseline, args.paired))
     if args.plot is not None:
         plot(args.out, args.plot)

@@ -252,9 +252,9 @@ def test_a_zoo_campaign_trains_through_rl_zoo3_on_one_hyperparameter_file():
     assert f"--algo ppo_pevfa --env {TASK} --seed 0 -n 2048 -conf {conf}" in result["arguments"]["command"]
     assert result["curve"]["cpu_s"] == [result["cpu_seconds"] / 2, result["cpu_seconds"]]  # prorated by steps
     assert result["training_log"]["time/total_timesteps"][-1] == 2048 and result["max_average_return"] > 0
-    with pytest.raises(ValueError, match="protocol 'zoo' needs a conf"):
-        campaign.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2)
+    with pytest.raises(ValueError, match="only protocol 'zoo' takes a conf"):
+        campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 2048, 1024, 2, conf)
     with pytest.raises(ValueError, match="No hyperparameter file"):
         campaign.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/none.yml")
     # the file's content belongs to the stored definition: an edited file is another protocol
-    assert tiny.definition()["settings"]["conf"] and "conf" not in campaign.CAMPAIGNS["table1"].definition()
+    assert tiny.definition()["settings"]["ppo conf"] and "conf" not in campaign.CAMPAIGNS["table1"].definition()
