@@ -642,7 +642,7 @@ def work_on(name: str, storage: str | None) -> None:
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
-        task, variant, seed = grid_point(trial)
+        task, variant, seed = grid_point(trial) or ("(no parameters)", "", "")
         if trial.state == TrialState.COMPLETE:
             a = trial.user_attrs
             line = (f"max average return {a['max_average_return']:.1f}, final {a['final_return']:.1f}, "
