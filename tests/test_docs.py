@@ -2,6 +2,8 @@
 it speaks of the package rather than of a work queue, its result files are each cited by a page, and the README stays
 short."""
 
+import fnmatch
+import os
 import pathlib
 import re
 import subprocess
@@ -69,25 +71,37 @@ def issue_references(page: pathlib.Path) -> list[str]:
     ]
 
 
-RESULT_PATH = re.compile(r"(?:\.\./)*(?:docs/)?results/[\w./-]*")
+RESULT_PATH = re.compile(r"(?:\.\./)*(?:docs/)?results/[\w./{},*-]*")
 
 
-def cited_results(page: pathlib.Path) -> list[tuple[pathlib.Path, bool]]:
-    """The paths under docs/results a page names (links, commands, prose), each with whether it is a prefix (cut at a
-    glob such as ``*.json`` or ``{a,b}``) rather than a whole path."""
-    text, cited = page.read_text(), []
-    for match in RESULT_PATH.finditer(text):
-        name = match.group(0).rstrip(".")
+def expand_braces(pattern: str) -> list[str]:
+    """A shell pattern's brace alternatives, expanded: ``a_{b,c}*`` -> ``a_b*``, ``a_c*``."""
+    match = re.search(r"\{([^{}]*)\}", pattern)
+    if match is None:
+        return [pattern]
+    head, tail = pattern[: match.start()], pattern[match.end() :]
+    return [expanded for option in match.group(1).split(",") for expanded in expand_braces(head + option + tail)]
+
+
+def cited_results(page: pathlib.Path) -> list[tuple[str, bool]]:
+    """The paths under docs/results a page names (links, commands, prose), each with whether it is a glob (``*``,
+    ``{a,b}``, or a name cut at ``_``) rather than a whole path; braces expanded, so one entry per alternative."""
+    cited = []
+    for match in RESULT_PATH.finditer(page.read_text()):
+        name = match.group(0).rstrip(".,")
+        if name.count("{") != name.count("}"):
+            name = name[: name.index("{")] + "*"  # a brace group the match cut: as wide as it could be
         if name.startswith("docs/"):
-            path = ROOT / name
+            base = ROOT
         elif name.startswith(("results/", "../")):
-            path = (page.parent / name).resolve()
+            base = page.parent
         else:  # "results/..." inside a longer word
             continue
-        if DOCS / "results" not in [path, *path.parents]:
-            continue
-        following = text[match.end() : match.end() + 1]
-        cited.append((path, following in ("*", "{") or name.endswith("_")))
+        for expanded in expand_braces(name + ("*" if name.endswith("_") else "")):
+            glob = "*" in expanded
+            path = pathlib.Path(os.path.normpath(base / expanded))
+            if DOCS / "results" in [path, *path.parents]:
+                cited.append((str(path), glob))
     return cited
 
 
@@ -157,25 +171,26 @@ def test_results_pages_are_short():
 
 
 def test_every_result_file_is_cited_and_every_cited_result_exists():
-    """Each file under docs/results is named by a page (itself, a folder above it, or a glob's prefix); each path a
-    page names there exists (a prefix: some file starts with it)."""
+    """Each file under docs/results is named by a page (itself, a folder above it, or a glob that matches it); each
+    path a page names there exists, and each glob matches a file."""
     results = DOCS / "results"
-    files = sorted(path for path in results.rglob("*") if path.is_file())
+    files = sorted(str(path) for path in results.rglob("*") if path.is_file())
     cited = [entry for page in pages() for entry in cited_results(page)]
-    missing = sorted({str(path.relative_to(ROOT)) for path, prefix in cited if not prefix and not path.exists()})
+    missing = sorted({path for path, glob in cited if not glob and not pathlib.Path(path).exists()})
     assert not missing, "named by a page but absent:\n" + "\n".join(missing)
-    globs = {path for path, prefix in cited if prefix}
-    dangling = sorted(str(path.relative_to(ROOT)) for path in globs if not any(str(f).startswith(str(path)) for f in files))
+    globs = {path for path, glob in cited if glob}
+    dangling = sorted(glob for glob in globs if not any(fnmatch.fnmatchcase(f, glob) for f in files))
     assert not dangling, "globs that match nothing:\n" + "\n".join(dangling)
     # a whole protocol's or note's folder, named in prose, cites none of its files; a glob in it does
     folders = [results, results / "notes"]
-    broad = {*folders, *(path for folder in folders for path in folder.iterdir() if path.is_dir())}
-    covers = [(path, prefix) for path, prefix in cited if prefix or path not in broad]
+    broad = {str(p) for p in (*folders, *(path for folder in folders for path in folder.iterdir() if path.is_dir()))}
+    named = {path for path, glob in cited if not glob and path not in broad}
 
-    def is_cited(file: pathlib.Path) -> bool:
-        return any(
-            file == path or path in file.parents or (prefix and str(file).startswith(str(path))) for path, prefix in covers
+    def is_cited(file: str) -> bool:
+        return any(file == path or file.startswith(path + os.sep) for path in named) or any(
+            fnmatch.fnmatchcase(file, glob) for glob in globs
         )
 
-    orphans = [str(file.relative_to(ROOT)) for file in files if not is_cited(file)]
+    orphans = [str(pathlib.Path(file).relative_to(ROOT)) for file in files if not is_cited(file)]
     assert not orphans, "files under docs/results that no page names:\n" + "\n".join(orphans)
+    assert expand_braces("a_{b,c}_{d,e}*") == ["a_b_d*", "a_b_e*", "a_c_d*", "a_c_e*"]
