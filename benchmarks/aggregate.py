@@ -64,6 +64,13 @@ def normalized_bootstrap_ci(
     return float(low), float(high)
 
 
+def best_within(returns, times, budget: float, default: float = float("nan")) -> float:
+    """The best of ``returns`` whose ``times`` (seconds or steps, one per return) are within ``budget``; ``default``
+    where none is: the best-so-far return of a run at a budget of time."""
+    within = [value for value, at in zip(returns, times) if at <= budget]
+    return max(within) if within else default
+
+
 def performance_profile(scores: TaskScores, taus: np.ndarray) -> np.ndarray:
     """Fraction of runs (each task weighted equally) whose score exceeds each tau."""
     return np.mean([[np.mean(values > tau) for tau in taus] for values in scores.values()], axis=0)

@@ -77,9 +77,7 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
 
 def best_so_far_at(run: dict[str, Any], cpu: float) -> float:
     """The run's best evaluation among those made within ``cpu`` seconds of training CPU (nan before its first)."""
-    curve = run["curve"]
-    within = [mean for mean, at in zip(curve["mean"], curve["cpu_s"]) if at <= cpu]
-    return max(within) if within else np.nan
+    return aggregate.best_within(run["curve"]["mean"], run["curve"]["cpu_s"], cpu)
 
 
 def probability_of_improvement(x: aggregate.TaskScores, y: aggregate.TaskScores) -> float:

@@ -343,9 +343,8 @@ def cpu_seconds(run: dict, point: dict) -> float:
 def best_so_far_at(run: dict, seconds: float, clock: str = "wall") -> float:
     """The best evaluation of ``run`` made within ``seconds`` of its start (``clock``: ``"wall"``-clock or ``"cpu"``
     seconds of the training process; -inf if none)."""
-    at = (lambda c: c["wall_s"]) if clock == "wall" else (lambda c: cpu_seconds(run, c))
-    returns = [c["mean_return"] for c in run["curve"] if at(c) <= seconds]
-    return max(returns) if returns else float("-inf")
+    times = [c["wall_s"] if clock == "wall" else cpu_seconds(run, c) for c in run["curve"]]
+    return aggregate.best_within([c["mean_return"] for c in run["curve"]], times, seconds, float("-inf"))
 
 
 def budgets(baseline_runs: list[dict]) -> dict[str, float]:

@@ -200,6 +200,8 @@ def test_report_statistics_by_hand():
                   "opr-e2e": [{"max_average_return": 300.0}, {"max_average_return": 400.0}]}}  # fmt: skip
     row = campaign_report.table(runs, "ppo", paper=False)[2]
     assert row == "| A | 150 ± 25 (2) | 350 ± 25 (2) **2.33x** |"  # mean ± half the std over seeds, ratio of means
+    run = {"curve": {"mean": [1.0, 5.0, 3.0, 9.0], "cpu_s": [1.0, 2.0, 3.0, 4.0]}}
+    assert campaign_report.best_so_far_at(run, 3.5) == 5.0 and np.isnan(campaign_report.best_so_far_at(run, 0.5))
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
