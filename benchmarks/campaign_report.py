@@ -143,10 +143,16 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
     return lines, normalized
 
 
+def same_machine(run: dict[str, Any], base_runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The baseline runs made on the machine (the boot) that made ``run``, or all of them where none was."""
+    boot = run.get("worker", {}).get("boot_id")
+    return [b for b in base_runs if boot and b.get("worker", {}).get("boot_id") == boot] or base_runs
+
+
 def speed(runs: Runs, baseline: str) -> list[str]:
     """Per task: the baseline's steps per CPU-second (wall-clock) and CPU minutes per run; per other variant, its
-    speed per CPU-second (wall-clock) and best-so-far return within the baseline's mean CPU time, both as ratios to
-    the baseline's, and its CPU minutes per run."""
+    speed per CPU-second (wall-clock) and best-so-far return within the baseline's mean CPU time, as ratios to the
+    baseline's runs on the same machine where there are any (a campaign spans machines), and its CPU minutes."""
     variants = [v for v in _variants(runs) if v != baseline]
     lines = [f"| task | {baseline}: steps/CPU-s (wall), CPU min | "
              + " | ".join(f"{v}: speed (wall), best at {baseline}'s CPU time, CPU min" for v in variants) + " |",
@@ -155,21 +161,25 @@ def speed(runs: Runs, baseline: str) -> list[str]:
     def mean(values: list[float]) -> float:
         return float(np.mean(values)) if values else np.nan
 
+    def ratio(run: dict[str, Any], base_runs: list[dict[str, Any]], key: str) -> float:
+        return run[key] / mean([b[key] for b in same_machine(run, base_runs)])
+
     for task, by_variant in runs.items():
         base_runs = by_variant.get(baseline, [])
         base_cpu = mean([r["cpu_seconds"] for r in base_runs])
+        base_best = mean([best_so_far_at(r, base_cpu) for r in base_runs])
         base_speed = mean([r["steps_per_cpu_second"] for r in base_runs])
         base_wall = mean([r["steps_per_wall_second"] for r in base_runs])
-        base_best = mean([best_so_far_at(r, base_cpu) for r in base_runs])
         cells = [f"{base_speed:.0f} ({base_wall:.0f}), {base_cpu / 60:.0f}" if base_runs else "—"]
         for variant in variants:
             variant_runs = by_variant.get(variant, [])
             if not variant_runs or not base_runs:
                 cells.append("—")
                 continue
-            cpu_speed = mean([r["steps_per_cpu_second"] for r in variant_runs]) / base_speed
-            wall_speed = mean([r["steps_per_wall_second"] for r in variant_runs]) / base_wall
-            best = mean([best_so_far_at(r, base_cpu) for r in variant_runs])
+            cpu_speed = mean([ratio(r, base_runs, "steps_per_cpu_second") for r in variant_runs])
+            wall_speed = mean([ratio(r, base_runs, "steps_per_wall_second") for r in variant_runs])
+            budgets = [mean([b["cpu_seconds"] for b in same_machine(r, base_runs)]) for r in variant_runs]
+            best = mean([best_so_far_at(r, budget) for r, budget in zip(variant_runs, budgets)])
             best_ratio = f"{best / base_best:.2f}x" if np.isfinite(best) and base_best > 0 else "—"
             minutes = mean([r["cpu_seconds"] for r in variant_runs]) / 60
             cells.append(f"{cpu_speed:.2f}x ({wall_speed:.2f}x), {best_ratio}, {minutes:.0f}")

@@ -202,6 +202,14 @@ def test_report_statistics_by_hand():
     assert row == "| A | 150 ± 25 (2) | 350 ± 25 (2) **2.33x** |"  # mean ± half the std over seeds, ratio of means
     run = {"curve": {"mean": [1.0, 5.0, 3.0, 9.0], "cpu_s": [1.0, 2.0, 3.0, 4.0]}}
     assert campaign_report.best_so_far_at(run, 3.5) == 5.0 and np.isnan(campaign_report.best_so_far_at(run, 0.5))
+
+    # speed against the baseline's runs on the same machine: 50 against 100 there, not against 400 on another
+    def timed(speed: float, boot: str) -> dict:
+        return {"steps_per_cpu_second": speed, "steps_per_wall_second": speed, "cpu_seconds": 4.0, "curve": run["curve"],
+                "worker": {"boot_id": boot}}  # fmt: skip
+
+    rows = campaign_report.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
+    assert rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
