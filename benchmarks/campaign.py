@@ -207,6 +207,8 @@ CAMPAIGNS: dict[str, Campaign] = {
     # (c) the other representations and objectives, then five more seeds
     "table1-variants": Campaign("paper", TABLE1_TASKS, ("random", "opr-cl", "spr-e2e"), tuple(range(5)), 1_000_000),
     "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
+    # the learned probe-state fingerprint in the same protocol, once the Table-1 grid is done
+    "table1-fingerprint": Campaign("paper", TABLE1_TASKS, ("fingerprint-e2e",), tuple(range(5)), 1_000_000),
     # the representations at SB3's PPO defaults through rl-zoo3 (as docs/results-sb3-defaults.md), 300k steps
     "representations-300k": Campaign(
         "zoo",
