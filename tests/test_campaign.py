@@ -210,6 +210,16 @@ def test_report_statistics_by_hand():
 
     rows = campaign_report.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
     assert rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
+
+    # per env step the max average returns, 40 / 20; per CPU-second the best within PPO's 2 CPU-seconds, 30 / 10
+    def scored(values: list[float], cpu: list[float]) -> dict:
+        return {"max_average_return": max(values), "cpu_seconds": 2.0, "curve": {"mean": values, "cpu_s": cpu}}
+
+    ppo, opr = [scored([10.0, 20.0], [1.0, 3.0])] * 2, [scored([30.0, 40.0], [1.5, 5.0])] * 2
+    rows, normalized = campaign_report.aggregates({"A": {"ppo": ppo, "opr-e2e": opr}}, "ppo")
+    assert rows[2:] == ["| ppo | 1 | 2 | 1.00 [1.00, 1.00] | — | 1.00 [1.00, 1.00], — |",
+                        "| opr-e2e | 1 | 2 | 2.00 [2.00, 2.00] | 1.00 | 3.00 [3.00, 3.00], 1.00 |"]  # fmt: skip
+    assert normalized["opr-e2e"]["A"].tolist() == [2.0, 2.0]  # the profile's scores are per env step
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
