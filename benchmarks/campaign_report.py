@@ -38,7 +38,26 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
                                  "opr-cl": (239, 3.70), "spr-e2e": (236, 3.13)},
 }  # fmt: skip
 #: Column order of the variants
-ORDER = ("ppo", "random", "opr-e2e", "opr-cl", "spr-e2e", "opr-e2e-default-schedule", "opr", "spr")
+ORDER = (
+    "ppo",
+    "random",
+    "opr-e2e",
+    "opr-cl",
+    "spr-e2e",
+    "opr-e2e-default-schedule",
+    "fingerprint-e2e",
+    "opr",
+    "spr",
+    "fingerprint",
+)
+#: Training signals of the zoo protocol's SB3 logs: key -> column heading
+SIGNALS = {
+    "train/explained_variance": "explained variance",
+    "pevfa/history_value_loss": "critic loss on history",
+    "pevfa/value_chi_gradient": "\\|dV/dchi\\|",
+    "pevfa/embedding_norm": "\\|chi\\|",
+    "pevfa/embedding_saturated_fraction": "saturated chi units",
+}
 
 
 Runs = dict[str, dict[str, list[dict[str, Any]]]]
@@ -218,6 +237,24 @@ def local_generalization(runs: Runs) -> list[str]:
     return lines if len(lines) > 2 else []
 
 
+def training_signals(runs: Runs) -> list[str]:
+    """Per task and variant whose runs kept SB3's training log: each signal's mean over the last third of a run's
+    iterations, mean over runs (— where the variant does not log it)."""
+    lines = ["| task | variant | runs | " + " | ".join(SIGNALS.values()) + " |", "|---" * (len(SIGNALS) + 3) + "|"]
+    for task, by_variant in runs.items():
+        for variant in _variants({task: by_variant}):
+            logs = [r["training_log"] for r in by_variant[variant] if "training_log" in r]
+            if not logs:
+                continue
+            cells = []
+            for key in SIGNALS:
+                tails = [np.asarray(log[key], float)[-(len(log[key]) // 3 or 1) :] for log in logs if log.get(key)]
+                means = [float(np.nanmean(t)) for t in tails if np.isfinite(t).any()]
+                cells.append(f"{np.mean(means):.3g}" if means else "—")
+            lines.append(f"| {task} | {variant} | {len(logs)} | " + " | ".join(cells) + " |")
+    return lines if len(lines) > 2 else []
+
+
 def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
     """The campaigns' CPU time and the wall-clock time left: per task and variant, the completed runs' mean, else
     extrapolated from running trials' progress (training only); grid points with neither are counted apart."""
@@ -336,6 +373,12 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     if diagnostic:
         sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error against each new policy's "
                       "Monte-Carlo returns, PeVFA against a conventional critic trained beside it:"], diagnostic]  # fmt: skip
+    signals = training_signals(runs)
+    if signals:
+        sections += [["Training signals from SB3's logs (mean over each run's last third of iterations, then over "
+                      "runs): the on-policy critic's explained variance, the PeVFA's loss on historical samples, "
+                      "the norm of the value's gradient in chi (does the critic read chi?), chi's norm and its "
+                      "share of saturated units:"], signals]  # fmt: skip
     if paper:
         sections += [["Deviations from the paper:"], [f"- {d}" for d in PAPER_DEVIATIONS]]
     libraries = ", ".join(f"{name} {versions[name]}" for name in ("torch", "stable_baselines3", "gymnasium", "mujoco"))

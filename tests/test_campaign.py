@@ -220,6 +220,12 @@ def test_report_statistics_by_hand():
     assert rows[2:] == ["| ppo | 1 | 2 | 1.00 [1.00, 1.00] | — | 1.00 [1.00, 1.00], — |",
                         "| opr-e2e | 1 | 2 | 2.00 [2.00, 2.00] | 1.00 | 3.00 [3.00, 3.00], 1.00 |"]  # fmt: skip
     assert normalized["opr-e2e"]["A"].tolist() == [2.0, 2.0]  # the profile's scores are per env step
+    # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
+    nan = float("nan")
+    logged = {"train/explained_variance": [0.0, 0.0, 0.0, 0.0, 0.5, 0.7], "pevfa/value_chi_gradient": [nan] * 3 + [1, 2, 6]}
+    other = {"train/explained_variance": [0.0] * 4 + [0.9, 0.9], "pevfa/value_chi_gradient": [nan] * 6}
+    rows = campaign_report.training_signals({"A": {"opr": [{"training_log": logged}, {"training_log": other}]}})
+    assert rows[2] == "| A | opr | 2 | 0.75 | — | 4 | — | — |"  # (0.6 + 0.9) / 2; (2 + 6) / 2, the all-nan run apart
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
