@@ -285,7 +285,9 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
                 continue
             total += cpu[key]
             remaining += 0.0 if done else wall[key]
-    text = (f"Expected duration: about {total / 3600:.0f} CPU-hours, {remaining / 3600 / workers:.0f} wall-clock hours "
+    if not remaining and not unknown:
+        return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
+    text = (f"Expected duration: about {total / 3600:.1f} CPU-hours, {remaining / 3600 / workers:.1f} wall-clock hours "
             f"left on {workers} workers (completed runs' mean time per task and variant, else a running trial's "
             "progress extrapolated, else the variant's mean over tasks).")  # fmt: skip
     if unknown:

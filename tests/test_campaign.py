@@ -226,6 +226,14 @@ def test_report_statistics_by_hand():
     other = {"train/explained_variance": [0.0] * 4 + [0.9, 0.9], "pevfa/value_chi_gradient": [nan] * 6}
     rows = campaign_report.training_signals({"A": {"opr": [{"training_log": logged}, {"training_log": other}]}})
     assert rows[2] == "| A | opr | 2 | 0.75 | — | 4 | — | — |"  # (0.6 + 0.9) / 2; (2 + 6) / 2, the all-nan run apart
+    # expected duration: the whole grid, a missing seed at its variant's mean time on the task; a complete grid says so
+    grid = campaign.Campaign("sb3", ("A",), ("ppo",), (0, 1), 1000, eval_freq=1000)
+    done = {"seed": 0, "cpu_seconds": 3000.0, "eval_cpu_seconds": 600.0, "wall_seconds": 3600.0, "eval_wall_seconds": 0.0}
+    assert "about 2.0 CPU-hours, 0.5 wall-clock hours left on 2" in campaign_report.expected_duration(
+        {"A": {"ppo": [done]}}, {}, [grid], workers=2
+    )
+    complete = {"A": {"ppo": [done, {**done, "seed": 1}]}}
+    assert campaign_report.expected_duration(complete, {}, [grid], workers=2).startswith("Duration: 2.0 CPU-hours")
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
