@@ -706,8 +706,11 @@ def status_of(name: str, storage: str | None) -> None:
         counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
     print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
     for (task, variant, seed), trials in grid_states(study, campaign).items():
-        states = " ".join(f"#{t.number}:{t.state.name}" for t in trials) or "-"
-        print(f"  {task:28s} {variant:26s} seed {seed}: {states}")
+        states = " ".join(
+            f"#{t.number}:{t.state.name}" + (f" (max average return {t.value:.0f})" if t.value is not None else "")
+            for t in trials
+        )
+        print(f"  {task:28s} {variant:26s} seed {seed}: {states or '-'}")
 
 
 def main(argv: list[str] | None = None) -> None:

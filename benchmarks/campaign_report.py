@@ -156,9 +156,10 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
         for score in (lambda r, base_runs: r["max_average_return"], at_baseline_cpu):
             scores = {t: np.array([score(r, runs[t][baseline]) for r in runs[t][variant]]) for t in tasks}
             base = {t: np.array([score(r, runs[t][baseline]) for r in runs[t][baseline]]) for t in tasks}
-            normalized.setdefault(variant, aggregate.normalized(scores, base))
+            scaled = aggregate.normalized(scores, base)
+            normalized.setdefault(variant, scaled)  # the performance profile's: per env step
             low, high = aggregate.normalized_bootstrap_ci(scores, base)
-            value = aggregate.iqm(aggregate.normalized(scores, base))
+            value = aggregate.iqm(scaled)
             improvement = "—" if variant == baseline else f"{probability_of_improvement(scores, base):.2f}"
             cells += [f"{value:.2f} [{low:.2f}, {high:.2f}]", improvement]
         n = sum(len(runs[t][variant]) for t in tasks)

@@ -65,6 +65,10 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     # the same command again: the grid is complete, nothing runs twice
     again = _campaign("run", "--campaign", "tiny", "--storage", str(journal), "--workers", "2")
     assert "tiny: 2/2 grid points complete, 0 waiting" in again and len(_study("tiny", journal).get_trials()) == 2
+    # the status shows each grid point's trials and, once complete, its max average return
+    shown = _campaign("status", "--campaign", "tiny", "--storage", str(journal))
+    for trial in trials:
+        assert f"#{trial.number}:COMPLETE (max average return {trial.value:.0f})" in shown
     # a stored campaign is never redefined
     with pytest.raises(ValueError, match="never changes"):
         _campaign_main("run", "--campaign", "tiny", "--storage", str(journal), *_definition("ppo"))
