@@ -209,6 +209,10 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
     # the learned probe-state fingerprint in the same protocol, once the Table-1 grid is done
     "table1-fingerprint": Campaign("paper", TABLE1_TASKS, ("fingerprint-e2e",), tuple(range(5)), 1_000_000),
+    # the local-generalization diagnostic (paper Fig. 3b / 8) where grid (a)'s direction differs from the paper's
+    "table1-local-generalization": Campaign(
+        "paper", ("Walker2d-v5", "Hopper-v5"), ("opr-e2e+local-generalization",), tuple(range(3)), 1_000_000
+    ),
     # the representations at SB3's PPO defaults through rl-zoo3 (as docs/results-sb3-defaults.md), 300k steps
     "representations-300k": Campaign(
         "zoo",
