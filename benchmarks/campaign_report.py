@@ -37,6 +37,9 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
     "LunarLanderContinuous-v3": {"ppo": (219, 5.33), "random": (226, 2.83), "opr-e2e": (238, 3.37),
                                  "opr-cl": (239, 3.70), "spr-e2e": (236, 3.13)},
 }  # fmt: skip
+#: The reproduction's target: above the baseline's mean on at least 5 of Table 1's 6 tasks, and an IQM of the
+#: baseline-normalized max average return of at least 1.15 whose 95 % CI's lower bound is above 1.0
+TARGET = {"tasks": 5, "iqm": 1.15, "low": 1.0}
 #: Column order of the variants
 ORDER = (
     "ppo",
@@ -165,6 +168,37 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
         n = sum(len(runs[t][variant]) for t in tasks)
         lines.append(f"| {variant} | {len(tasks)} | {n} | {cells[0]} | {cells[1]} | {cells[2]}, {cells[3]} |")
     return lines, normalized
+
+
+def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:
+    """Per variant, the target read from the runs: the tasks above the baseline's mean, the IQM with its CI (as in
+    ``aggregates``), and met, or missed by how much; provisional while the variant or the baseline has fewer runs
+    than ``planned`` (variant -> runs in its campaigns' grids)."""
+    lines = []
+    for variant in _variants(runs):
+        tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
+        if variant == baseline or not tasks:
+            continue
+        scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
+        base = {t: np.array([r["max_average_return"] for r in runs[t][baseline]]) for t in tasks}
+        ratios = {t: scores[t].mean() / base[t].mean() for t in tasks}
+        below = [f"{t} {ratios[t]:.2f}x" for t in tasks if ratios[t] <= 1]
+        above = len(tasks) - len(below)
+        value = aggregate.iqm(aggregate.normalized(scores, base))
+        low, high = aggregate.normalized_bootstrap_ci(scores, base)
+        short = [f"{TARGET['tasks'] - above} task(s)"] if above < TARGET["tasks"] else []
+        short += [f"{TARGET['iqm'] - value:.2f} of IQM"] if value < TARGET["iqm"] else []
+        short += [f"{TARGET['low'] - low:.2f} of the lower bound"] if low <= TARGET["low"] else []
+        made = {v: sum(len(by_variant.get(v, [])) for by_variant in runs.values()) for v in (variant, baseline)}
+        missing = {v: planned.get(v, 0) - made[v] for v in made if made[v] < planned.get(v, 0)}
+        lines.append(
+            f"- {variant}: above {baseline} on {above} of {len(tasks)} tasks"
+            + (f" (not on {', '.join(below)})" if below else "")
+            + f", IQM {value:.2f} [{low:.2f}, {high:.2f}]: "
+            + ("met" if not short else "missed by " + ", ".join(short))
+            + (f"; provisional, runs to come: {', '.join(f'{n} of {v}' for v, n in missing.items())}" if missing else "")
+        )
+    return lines
 
 
 def same_machine(run: dict[str, Any], base_runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -363,6 +397,13 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         aggregate_lines,
     ]  # fmt: skip
     if paper:
+        planned: dict[str, int] = {}
+        for c in campaigns:
+            for variant in c.variants:
+                planned[variant] = planned.get(variant, 0) + len(c.tasks) * len(c.seeds)
+        sections += [[f"Against the target (above {baseline}'s mean on at least {TARGET['tasks']} of Table 1's 6 tasks, "
+                      f"IQM at least {TARGET['iqm']} with the CI's lower bound above {TARGET['low']}):"],
+                     target(runs, baseline, planned)]  # fmt: skip
         ratios = {v: np.mean([PAPER_TABLE1[t][v][0] / PAPER_TABLE1[t]["ppo"][0] for t in PAPER_TABLE1]) for v in ORDER[1:5]}
         sections.append(
             ["The paper's ratios to its PPO, mean over its six tasks: " + ", ".join(f"{v} {r:.2f}" for v, r in ratios.items())]

@@ -199,7 +199,7 @@ def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
     assert result["arguments"]["max_grad_norm"] == "inf" and result["arguments"]["learning_rate"] == "0.0001"
 
 
-def test_report_statistics_by_hand():
+def test_report_statistics_by_hand(monkeypatch):
     runs = {"A": {"ppo": [{"max_average_return": 100.0}, {"max_average_return": 200.0}],
                   "opr-e2e": [{"max_average_return": 300.0}, {"max_average_return": 400.0}]}}  # fmt: skip
     row = campaign_report.table(runs, "ppo", paper=False)[2]
@@ -224,6 +224,18 @@ def test_report_statistics_by_hand():
     assert rows[2:] == ["| ppo | 1 | 2 | 1.00 [1.00, 1.00] | — | 1.00 [1.00, 1.00], — |",
                         "| opr-e2e | 1 | 2 | 2.00 [2.00, 2.00] | 1.00 | 3.00 [3.00, 3.00], 1.00 |"]  # fmt: skip
     assert normalized["opr-e2e"]["A"].tolist() == [2.0, 2.0]  # the profile's scores are per env step
+    # the target: tasks above the baseline's mean, the IQM of [1.5, 1.5, 0.9, 0.9] (its middle half) and its CI
+    two = {"A": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([150.0], [1.0])] * 2},
+           "B": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([90.0], [1.0])] * 2}}  # fmt: skip
+    assert campaign_report.target(two, "ppo", {"ppo": 6, "opr-e2e": 4}) == [
+        "- opr-e2e: above ppo on 1 of 2 tasks (not on B 0.90x), IQM 1.20 [1.20, 1.20]: missed by 4 task(s); "
+        "provisional, runs to come: 2 of ppo"
+    ]
+    two["B"]["opr-e2e"] = [scored([101.0], [1.0])] * 2  # [1.5, 1.5, 1.01, 1.01]: IQM 1.255, both tasks above
+    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.25 [1.25, 1.25]: "
+                                                      "missed by 3 task(s)"]  # fmt: skip
+    monkeypatch.setitem(campaign_report.TARGET, "tasks", 2)
+    assert campaign_report.target(two, "ppo", {})[0].endswith("IQM 1.25 [1.25, 1.25]: met")
     # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
     nan = float("nan")
     logged = {"train/explained_variance": [0.0, 0.0, 0.0, 0.0, 0.5, 0.7], "pevfa/value_chi_gradient": [nan] * 3 + [1, 2, 6]}
