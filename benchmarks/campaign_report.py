@@ -17,7 +17,7 @@ from typing import Any
 import aggregate
 import numpy as np
 import optuna
-from campaign import Campaign, grid_states, open_study, storage_of
+from campaign import LOCAL_GENERALIZATION, Campaign, grid_states, open_study, storage_of
 from optuna.trial import TrialState
 
 from sb3_pevfa.protocols import PAPER_DEVIATIONS
@@ -173,11 +173,11 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
 def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:
     """Per variant, the target read from the runs: the tasks above the baseline's mean, the IQM with its CI (as in
     ``aggregates``), and met, or missed by how much; provisional while the variant or the baseline has fewer runs
-    than ``planned`` (variant -> runs in its campaigns' grids)."""
+    than ``planned`` (variant -> runs in its campaigns' grids). The diagnostic's runs (on some tasks) are left out."""
     lines = []
     for variant in _variants(runs):
         tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
-        if variant == baseline or not tasks:
+        if variant == baseline or variant in LOCAL_GENERALIZATION or not tasks:
             continue
         scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
         base = {t: np.array([r["max_average_return"] for r in runs[t][baseline]]) for t in tasks}
