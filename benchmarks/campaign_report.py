@@ -272,6 +272,47 @@ def local_generalization(runs: Runs) -> list[str]:
     return lines if len(lines) > 2 else []
 
 
+def local_generalization_curves(series: list[dict[str, list[float]]], window: int = 25) -> dict[str, np.ndarray]:
+    """A task's diagnostic runs, per iteration (runs aligned by iteration): the env steps and, before and after the
+    critic update, the PeVFA's error over the conventional critic's, as a geometric mean over runs smoothed by a
+    centered moving geometric mean over ``window`` iterations (non-finite errors left out)."""
+    n = min(len(s["timesteps"]) for s in series)
+    curves = {"steps": np.asarray(series[0]["timesteps"][:n], float)}
+    for when in ("before", "after"):
+        logs = np.array([np.log(np.asarray(s[f"pevfa_{when}"][:n], float) / np.asarray(s[f"vfa_{when}"][:n], float))
+                         for s in series])  # fmt: skip
+        logs[~np.isfinite(logs)] = np.nan
+        per_iteration = np.nanmean(logs, axis=0) if np.isfinite(logs).any() else np.full(n, np.nan)
+        half = window // 2
+        curves[when] = np.exp([np.nanmean(per_iteration[max(0, i - half) : i + half + 1]) for i in range(n)])
+    return curves
+
+
+def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:
+    """One panel per task with diagnostic runs: PeVFA's error / the conventional critic's over training."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(task, variant, [r["local_generalization"] for r in variant_runs if "local_generalization" in r])
+              for task, by_variant in runs.items() for variant, variant_runs in by_variant.items()]  # fmt: skip
+    panels = [panel for panel in panels if panel[2]]
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
+    for ax, (task, variant, series) in zip(axes[0], panels):
+        curves = local_generalization_curves(series)
+        ax.plot(curves["steps"] / 1e6, curves["before"], label="before the critic update")
+        ax.plot(curves["steps"] / 1e6, curves["after"], "--", label="after")
+        ax.axhline(1.0, color="grey", linewidth=0.8)
+        ax.set(yscale="log", xlabel="env steps (M)", title=f"{task}, {variant} ({len(series)} runs)")
+        ax.title.set_fontsize(9)
+    axes[0][0].set_ylabel("PeVFA's error / conventional critic's")
+    axes[0][0].legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(png, dpi=80)
+    plt.close(figure)
+
+
 def training_signals(runs: Runs) -> list[str]:
     """Per task and variant whose runs kept SB3's training log: each signal's mean over the last third of a run's
     iterations, mean over runs (— where the variant does not log it)."""
@@ -416,7 +457,8 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     diagnostic = local_generalization(runs)
     if diagnostic:
         sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error against each new policy's "
-                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it:"], diagnostic]  # fmt: skip
+                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (over training: "
+                      "local_generalization.png beside this report):"], diagnostic]  # fmt: skip
     signals = training_signals(runs)
     if signals:
         sections += [["Training signals from SB3's logs (mean over each run's last third of iterations, then over "
@@ -431,6 +473,8 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     lines += [line for section in sections if section for line in (*section, "")]
     if png is not None:
         plot(runs, png, normalized)
+        if diagnostic:
+            plot_local_generalization(runs, png.with_name("local_generalization.png"))
     return "\n".join(lines).rstrip() + "\n"
 
 

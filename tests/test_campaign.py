@@ -269,6 +269,12 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
                "pevfa_after": [1.0, 1.0, 1.0, 1.0], "vfa_after": [3.0, 1.0, 2.0, 1.0]}  # fmt: skip
     rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
     assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]  # the iteration with a NaN left out
+    # over training: the geometric mean over runs of PeVFA's error / the conventional critic's, smoothed over 3
+    other = {**by_hand, "pevfa_before": [4.0, 1.0, 3.0, 2.0], "timesteps": [1.0, 2.0, 3.0, 4.0]}
+    curves = campaign_report.local_generalization_curves([{**by_hand, "timesteps": [1.0, 2.0, 3.0, 4.0]}, other], 3)
+    # per iteration: sqrt(0.5 * 2), sqrt(2 * 0.5), sqrt(3 * 3), 2 (the NaN left out)
+    np.testing.assert_allclose(curves["before"], [1.0, np.exp(np.log(3) / 3), np.exp(np.log(6) / 3), 6**0.5])
+    np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
 
 
 def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
