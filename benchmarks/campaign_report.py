@@ -121,6 +121,12 @@ def _variants(runs: Runs) -> list[str]:
     return sorted(present, key=lambda v: (ORDER.index(v.split(":")[-1]) if v.split(":")[-1] in ORDER else len(ORDER), v))
 
 
+def _compared(runs: Runs) -> list[str]:
+    """The variants that the aggregates, the target and the speed compare: all but the diagnostic's, whose runs
+    train an extra critic (their time) and draw other random numbers (their returns: in the table only)."""
+    return [v for v in _variants(runs) if v.split(":")[-1] not in LOCAL_GENERALIZATION]
+
+
 def table(runs: Runs, baseline: str, paper: bool) -> list[str]:
     variants = _variants(runs)
     lines = [
@@ -151,7 +157,7 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
     lines = [f"| variant | tasks | runs | IQM of max average return / {baseline}'s mean [95 % CI] | P(variant > "
              f"{baseline}) | the same at {baseline}'s CPU time: IQM [95 % CI], P |", "|---|---|---|---|---|---|"]  # fmt: skip
     normalized: dict[str, aggregate.TaskScores] = {}
-    for variant in _variants(runs):
+    for variant in _compared(runs):
         tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
         if not tasks:
             continue
@@ -173,11 +179,11 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
 def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:
     """Per variant, the target read from the runs: the tasks above the baseline's mean, the IQM with its CI (as in
     ``aggregates``), and met, or missed by how much; provisional while the variant or the baseline has fewer runs
-    than ``planned`` (variant -> runs in its campaigns' grids). The diagnostic's runs (on some tasks) are left out."""
+    than ``planned`` (variant -> runs in its campaigns' grids)."""
     lines = []
-    for variant in _variants(runs):
+    for variant in _compared(runs):
         tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
-        if variant == baseline or variant in LOCAL_GENERALIZATION or not tasks:
+        if variant == baseline or not tasks:
             continue
         scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
         base = {t: np.array([r["max_average_return"] for r in runs[t][baseline]]) for t in tasks}
@@ -216,7 +222,7 @@ def speed(runs: Runs, baseline: str) -> list[str]:
     """Per task: the baseline's steps per CPU-second (wall-clock) and CPU minutes per run; per other variant, its
     speed per CPU-second (wall-clock) and best-so-far return within the baseline's mean CPU time, as ratios to the
     baseline's runs on the same machine where there are any (a campaign spans machines), and its CPU minutes."""
-    variants = [v for v in _variants(runs) if v != baseline]
+    variants = [v for v in _compared(runs) if v != baseline]
     lines = [f"| task | {baseline}: steps/CPU-s (wall), CPU min | "
              + " | ".join(f"{v}: speed (wall), best at {baseline}'s CPU time, CPU min" for v in variants) + " |",
              "|---" * (len(variants) + 2) + "|"]  # fmt: skip
@@ -458,7 +464,9 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     if diagnostic:
         sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error against each new policy's "
                       "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (over training: "
-                      "local_generalization.png beside this report):"], diagnostic]  # fmt: skip
+                      "local_generalization.png beside this report). These runs are in the first table only: the "
+                      "extra critic costs time and draws random numbers, so they are other runs of the variant:"],
+                     diagnostic]  # fmt: skip
     signals = training_signals(runs)
     if signals:
         sections += [["Training signals from SB3's logs (mean over each run's last third of iterations, then over "

@@ -236,6 +236,10 @@ def test_report_statistics_by_hand(monkeypatch):
                                                       "missed by 3 task(s)"]  # fmt: skip
     monkeypatch.setitem(campaign_report.TARGET, "tasks", 2)
     assert campaign_report.target(two, "ppo", {})[0].endswith("IQM 1.25 [1.25, 1.25]: met")
+    two["A"]["opr-e2e+local-generalization"] = two["A"]["opr-e2e"]  # the diagnostic's runs: in the table only
+    assert "opr-e2e+local-generalization" in campaign_report.table(two, "ppo", paper=False)[0]
+    assert [row.split(" |")[0] for row in campaign_report.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
+    assert len(campaign_report.target(two, "ppo", {})) == 1
     # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
     nan = float("nan")
     logged = {"train/explained_variance": [0.0, 0.0, 0.0, 0.0, 0.5, 0.7], "pevfa/value_chi_gradient": [nan] * 3 + [1, 2, 6]}
