@@ -370,8 +370,7 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
     if not remaining and not unknown:
         return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
     text = (f"Expected duration: about {total / 3600:.1f} CPU-hours, {remaining / 3600 / workers:.1f} wall-clock hours "
-            f"left on {workers} workers (completed runs' mean time per task and variant, else a running trial's "
-            "progress extrapolated, else the variant's mean over tasks).")  # fmt: skip
+            f"left on {workers} workers (from the runs' mean times per task and variant).")  # fmt: skip
     if unknown:
         text += f" Not counted: {unknown} runs of variants with no run yet."
     return text
@@ -438,9 +437,9 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
          f"ratio to {baseline}'s mean{beside}:"],
         table(runs, baseline, paper),
-        [f"Over tasks (each run's max average return / {baseline}'s mean on its task; 95 % CIs by stratified bootstrap "
-         f"over the seeds of both; at {baseline}'s CPU time: each run's best return within the mean training CPU "
-         f"seconds of {baseline}'s runs on its task and machine, {baseline}'s own runs scored alike):"],
+        [f"Over tasks (each run's max average return / {baseline}'s mean on its task; 95 % stratified-bootstrap CIs "
+         f"over the seeds of both; at {baseline}'s CPU time: each run's best return within {baseline}'s mean training "
+         "CPU time on its task and machine):"],
         aggregate_lines,
     ]  # fmt: skip
     if paper:
@@ -463,9 +462,9 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     diagnostic = local_generalization(runs)
     if diagnostic:
         sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error against each new policy's "
-                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (over training: "
-                      "local_generalization.png beside this report). These runs are in the first table only: the "
-                      "extra critic costs time and draws random numbers, so they are other runs of the variant:"],
+                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (local_generalization.png: "
+                      "over training). Its runs count in the first table only: the extra critic costs time and draws "
+                      "random numbers:"],
                      diagnostic]  # fmt: skip
     signals = training_signals(runs)
     if signals:
