@@ -224,18 +224,31 @@ def test_report_statistics_by_hand(monkeypatch):
     assert rows[2:] == ["| ppo | 1 | 2 | 1.00 [1.00, 1.00] | — | 1.00 [1.00, 1.00], — |",
                         "| opr-e2e | 1 | 2 | 2.00 [2.00, 2.00] | 1.00 | 3.00 [3.00, 3.00], 1.00 |"]  # fmt: skip
     assert normalized["opr-e2e"]["A"].tolist() == [2.0, 2.0]  # the profile's scores are per env step
+
     # the target: tasks above the baseline's mean, the IQM of [1.5, 1.5, 0.9, 0.9] (its middle half) and its CI
-    two = {"A": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([150.0], [1.0])] * 2},
-           "B": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([90.0], [1.0])] * 2}}  # fmt: skip
-    assert campaign_report.target(two, "ppo", {"ppo": 6, "opr-e2e": 4}) == [
-        "- opr-e2e: above ppo on 1 of 2 tasks (not on B 0.90x), IQM 1.20 [1.20, 1.20]: missed by 4 task(s); "
+    def two_tasks(a: float, b: float) -> dict:
+        return {"A": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([a], [1.0])] * 2},
+                "B": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([b], [1.0])] * 2}}  # fmt: skip
+
+    assert campaign_report.target(two_tasks(150.0, 90.0), "ppo", {"ppo": 6, "opr-e2e": 4}) == [
+        "- opr-e2e: above ppo on 1 of 2 tasks (below on B 0.90x), IQM 1.20 [1.20, 1.20]: missed by 4 task(s); "
         "provisional, runs to come: 2 of ppo"
     ]
-    two["B"]["opr-e2e"] = [scored([101.0], [1.0])] * 2  # [1.5, 1.5, 1.01, 1.01]: IQM 1.255, both tasks above
-    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.25 [1.25, 1.25]: "
+    assert campaign_report.target(two_tasks(110.0, 80.0), "ppo", {"opr-e2e": 6}) == [  # [1.1, 1.1, 0.8, 0.8]
+        "- opr-e2e: above ppo on 1 of 2 tasks (below on B 0.80x), IQM 0.95 [0.95, 0.95]: missed by 4 task(s), "
+        "0.200 of IQM, 0.050 of the lower bound; provisional, runs to come: 2 of opr-e2e"
+    ]
+    # within half a percent of the baseline's mean: a tie, not above
+    assert campaign_report.target(two_tasks(150.0, 100.4), "ppo", {})[0].startswith(
+        "- opr-e2e: above ppo on 1 of 2 tasks (tied on B 1.00x), IQM 1.25"
+    )
+    three = {**two_tasks(150.0, 100.4), "C": two_tasks(90.0, 0.0)["A"]}
+    assert "on 1 of 3 tasks (tied on B 1.00x; below on C 0.90x)" in campaign_report.target(three, "ppo", {})[0]
+    two = two_tasks(150.0, 102.0)  # [1.5, 1.5, 1.02, 1.02]: IQM 1.26, both tasks above
+    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: "
                                                       "missed by 3 task(s)"]  # fmt: skip
     monkeypatch.setitem(campaign_report.TARGET, "tasks", 2)
-    assert campaign_report.target(two, "ppo", {})[0].endswith("IQM 1.25 [1.25, 1.25]: met")
+    assert campaign_report.target(two, "ppo", {})[0].endswith("IQM 1.26 [1.26, 1.26]: met")
     two["A"]["opr-e2e+local-generalization"] = two["A"]["opr-e2e"]  # the diagnostic's runs: in the table only
     assert "opr-e2e+local-generalization" in campaign_report.table(two, "ppo", paper=False)[0]
     assert [row.split(" |")[0] for row in campaign_report.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
@@ -279,6 +292,12 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     # per iteration: sqrt(0.5 * 2), sqrt(2 * 0.5), sqrt(3 * 3), 2 (the NaN left out)
     np.testing.assert_allclose(curves["before"], [1.0, np.exp(np.log(3) / 3), np.exp(np.log(6) / 3), 6**0.5])
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
+    assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
+    np.testing.assert_allclose(campaign_report.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
+    # a run that went on from a checkpoint restarted its conventional critic: left out of the diagnostic
+    resumed = {"local_generalization": other, "resumed_from": 2000}
+    rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed]}})
+    assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]
 
 
 def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
