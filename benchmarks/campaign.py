@@ -610,9 +610,10 @@ def objective(campaign: Campaign):
             variant = trial.suggest_categorical("variant", list(campaign.variants))
             seed = trial.suggest_categorical("seed", list(campaign.seeds))
             point = (task, variant, seed)
-            taken = [t for t in trial.study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.COMPLETE))
-                     if t.number != trial.number and grid_point(t) == point]  # fmt: skip
-            if taken:  # another worker took the same grid point at the same moment
+            this = trial.study._storage.get_trial(trial._trial_id)
+            taken = [t for t in trial.study.get_trials(deepcopy=False)
+                     if t.number != trial.number and grid_point(t) == point and _yields(this, t)]  # fmt: skip
+            if taken:  # the grid point is done, or another worker took it at the same moment
                 trial.set_user_attr("duplicate_of", taken[0].number)
                 raise optuna.TrialPruned()
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": _boot_id(), "pid": os.getpid()})
@@ -627,6 +628,20 @@ def objective(campaign: Campaign):
         return result["max_average_return"]
 
     return run_trial
+
+
+def _yields(trial: FrozenTrial, other: FrozenTrial) -> bool:
+    """Whether ``trial`` leaves its grid point to ``other``, a trial of the same point: to a complete one; a new trial
+    to a retried one, waiting or running (so that the retry of a dead worker's trial runs, once); between two of the
+    same kind, the later to the earlier."""
+    if other.state == TrialState.COMPLETE:
+        return True
+    retried, other_retried = "retry_history" in trial.system_attrs, "retry_history" in other.system_attrs
+    if other.state == TrialState.WAITING:
+        return other_retried and not retried
+    if other.state == TrialState.RUNNING:
+        return other_retried > retried or (other_retried == retried and other.number < trial.number)
+    return False
 
 
 def _stop(*_: Any) -> None:

@@ -178,6 +178,22 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
     assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 2
 
 
+def test_a_new_trial_leaves_its_grid_point_to_a_retried_one():
+    def trial(number: int, state: TrialState, retried: bool = False) -> optuna.trial.FrozenTrial:
+        attrs = {"retry_history": [0]} if retried else {}
+        made = optuna.create_trial(state=state, value=1.0 if state == TrialState.COMPLETE else None, system_attrs=attrs)
+        made.number = number
+        return made
+
+    new, retry = trial(5, TrialState.RUNNING), trial(4, TrialState.RUNNING, retried=True)
+    assert campaign._yields(new, retry) and not campaign._yields(retry, new)  # whichever checks first
+    assert campaign._yields(new, trial(6, TrialState.WAITING, retried=True))  # the retry not started yet
+    assert not campaign._yields(retry, trial(6, TrialState.RUNNING))  # a later new one: the retry keeps the point
+    assert campaign._yields(trial(7, TrialState.RUNNING), new) and not campaign._yields(new, trial(7, TrialState.RUNNING))
+    assert campaign._yields(retry, trial(9, TrialState.COMPLETE))  # the point is done
+    assert not campaign._yields(new, trial(1, TrialState.FAIL)) and not campaign._yields(new, trial(2, TrialState.PRUNED))
+
+
 def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
     """Each evaluation burns 3 s of CPU: the training CPU time of the run and of its curve leaves it out, the
     evaluation time holds it (an update and a 2000-step rollout take about a second here)."""
