@@ -1,5 +1,5 @@
 """Learning campaigns as resumable Optuna studies: one study per campaign, a grid of task x variant x seed
-(``GridSampler``), one training per trial.
+(``GridSampler``; each worker enqueues a grid point that no trial holds, drawn at random), one training per trial.
 
 Every trial stores, as user attributes, its evaluation curve (env steps, mean and std of the evaluation returns, the
 training's CPU and wall-clock seconds at each evaluation), its CPU and wall-clock seconds (evaluation apart), env steps
@@ -34,6 +34,7 @@ import inspect
 import json
 import os
 import pathlib
+import random
 import shutil
 import signal
 import socket
@@ -513,7 +514,7 @@ def open_study(
             f"Campaign {name!r} was started as {stored}, and is now given as {expected.definition()}: a campaign's "
             "protocol never changes; start one under another name"
         )
-    study.sampler = optuna.samplers.GridSampler(campaign.search_space)  # each worker its own draw of the free points
+    study.sampler = optuna.samplers.GridSampler(campaign.search_space)  # the grid; workers enqueue its points (draw)
     return study, campaign
 
 
@@ -577,14 +578,29 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
         history = latest.system_attrs.get("retry_history", [])
         if _interrupted(latest) and len(history) < MAX_RETRY:
             # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
-            attrs = {
-                "failed_trial": latest.system_attrs.get("failed_trial", latest.number),
-                "retry_history": [*history, latest.number],
-            }
-            study.add_trial(optuna.create_trial(state=TrialState.WAITING, params=latest.params,
-                                                distributions=latest.distributions, system_attrs=attrs))  # fmt: skip
+            enqueue(study, grid_point(latest), failed_trial=latest.system_attrs.get("failed_trial", latest.number),
+                    retry_history=[*history, latest.number])  # fmt: skip
             retried.append(latest.number)
     return retried
+
+
+def enqueue(study: optuna.Study, point: tuple[str, str, int], **system_attrs: Any) -> None:
+    """A waiting trial of ``point`` with fixed parameters, as ``Study.enqueue_trial`` makes it: the GridSampler gives
+    such a trial no grid id, so it never marks another grid point as visited (a trial that draws its parameters from
+    the sampler, as retries did before, takes the id of its number and left that id's point to random draws)."""
+    params = dict(zip(("task", "variant", "seed"), point))
+    study.add_trial(optuna.create_trial(state=TrialState.WAITING, system_attrs={"fixed_params": params, **system_attrs}))
+
+
+def draw(study: optuna.Study, campaign: Campaign, rng: random.Random) -> None:
+    """Enqueue a grid point that no trial holds, drawn at random (each worker its own draw, so that workers starting
+    together rarely take the same one), unless a trial waits already (a retry first)."""
+    states = grid_states(study, campaign)
+    if any(t.state == TrialState.WAITING for trials in states.values() for t in trials):
+        return
+    free = [point for point, trials in states.items() if not trials]
+    if free:
+        enqueue(study, rng.choice(free))
 
 
 def pending(study: optuna.Study, campaign: Campaign) -> int:
@@ -673,7 +689,9 @@ def work_on(name: str, storage: str | None) -> None:
             line = trial.state.name
         print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
 
+    rng = random.Random()  # seeded from the OS: workers draw apart
     while pending(study, campaign):
+        draw(study, campaign, rng)
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
 
 

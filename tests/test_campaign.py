@@ -145,7 +145,7 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     add(2, {"retry_history": list(range(campaign.MAX_RETRY))}, interrupted="worker gone")  # retried often enough
     assert campaign.recover(study, tiny) == [0] and campaign.recover(study, tiny) == []  # enqueued once
     waiting = [t for t in study.get_trials() if t.state == TrialState.WAITING]
-    assert [t.params["seed"] for t in waiting] == [0] and waiting[0].system_attrs["retry_history"] == [0]
+    assert [campaign.grid_point(t) for t in waiting] == [(TASK, "ppo", 0)] and waiting[0].system_attrs["retry_history"] == [0]
     assert campaign.pending(study, tiny) == 2  # seed 0 again and seed 3, never started; not seeds 1 and 2
     with pytest.raises(ValueError, match="Unknown variants \\['opr'\\] of protocol 'paper'"):
         campaign.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
@@ -176,6 +176,35 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
     study.enqueue_trial({**params, "seed": 1})
     study.optimize(campaign.objective(tiny), n_trials=1)
     assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 2
+
+
+def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_path, monkeypatch):
+    """A retry enqueued while trials of other points exist, then a worker to the end: each point trains once and no
+    trial is pruned as a duplicate (a retry that took the sampler's grid id of its number left that id's point to
+    random draws of the whole grid, most of them duplicates)."""
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), tuple(range(8)), 4000, 2000, 2)
+    journal = str(tmp_path / "d.journal")
+    study, _ = campaign.open_study("draws", campaign.storage_of("draws", journal), tiny)
+    trained = []
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        trained.append(seed)
+        if len(trained) == 3:  # the third training is stopped: the next run enqueues it again
+            raise KeyboardInterrupt
+        keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
+        return {"max_average_return": float(seed), **dict.fromkeys(keys, 1.0)}
+
+    monkeypatch.setattr(campaign, "train", train)
+    with pytest.raises(KeyboardInterrupt):
+        campaign.work_on("draws", journal)
+    assert campaign.recover(study, tiny) == [2]
+    campaign.work_on("draws", journal)
+    trials = study.get_trials()
+    assert sorted(trained) == sorted([*range(8), trained[2]])  # the stopped one twice, every other point once
+    assert [t.state for t in trials].count(TrialState.PRUNED) == 0 and len(trials) == 9
+    assert sorted(t.params["seed"] for t in trials if t.state == TrialState.COMPLETE) == list(range(8))
+    retry = next(t for t in trials if "retry_history" in t.system_attrs)
+    assert retry.params == trials[2].params and retry.state == TrialState.COMPLETE
 
 
 def test_a_new_trial_leaves_its_grid_point_to_a_retried_one():
