@@ -75,7 +75,7 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
     campaigns. Variants are named ``protocol:variant`` where the campaigns mix protocols."""
     runs: Runs = {}
     progress: dict[tuple[str, str], list[dict[str, float]]] = {}
-    notes, campaigns = [], []
+    notes, campaigns, resumed = [], [], []
     studies = [open_study(name, storage_of(name, storage)) for name in names]
     mixed = len({campaign.protocol for _, campaign in studies}) > 1
     for study, campaign in studies:
@@ -89,13 +89,14 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
             progress.setdefault((task, label), []).extend(running)
             if complete:
                 runs.setdefault(task, {}).setdefault(label, []).append({**complete[0].user_attrs, "seed": seed})
-                resumed = complete[0].user_attrs.get("resumed_from")
-                if resumed:
-                    notes.append(f"{task} {label} seed {seed} went on from its checkpoint at {resumed:,} steps")
+                if complete[0].user_attrs.get("resumed_from"):
+                    resumed.append(f"{task} {label} seed {seed} ({complete[0].user_attrs['resumed_from']:,})")
                 if len(complete) > 1:
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
                 notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+    if resumed:
+        notes.insert(0, f"Went on from a checkpoint (at env step): {', '.join(resumed)}")
     order = list(dict.fromkeys(task for campaign in campaigns for task in campaign.tasks))
     return {task: runs[task] for task in order if task in runs}, progress, notes, campaigns
 

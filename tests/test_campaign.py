@@ -207,6 +207,19 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
     assert retry.params == trials[2].params and retry.state == TrialState.COMPLETE
 
 
+def test_the_report_names_the_runs_that_went_on_from_a_checkpoint_in_one_line(tmp_path):
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
+    journal = str(tmp_path / "c.journal")
+    study, _ = campaign.open_study("resumed", campaign.storage_of("resumed", journal), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    for seed, resumed in ((0, 2000), (1, 0), (2, 4000)):
+        study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, distributions=distributions,
+                                            params={"task": TASK, "variant": "ppo", "seed": seed},
+                                            user_attrs={"resumed_from": resumed}))  # fmt: skip
+    notes = campaign_report.collect(["resumed"], journal)[2]
+    assert notes == [f"Went on from a checkpoint (at env step): {TASK} ppo seed 0 (2,000), {TASK} ppo seed 2 (4,000)"]
+
+
 def test_a_new_trial_leaves_its_grid_point_to_a_retried_one():
     def trial(number: int, state: TrialState, retried: bool = False) -> optuna.trial.FrozenTrial:
         attrs = {"retry_history": [0]} if retried else {}
