@@ -356,42 +356,55 @@ def training_signals(runs: Runs) -> list[str]:
 
 def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
     """The campaigns' CPU time and the wall-clock time left: per task and variant, the completed runs' mean, else
-    extrapolated from running trials' progress (training only); grid points with neither are counted apart."""
-    cpu: dict[tuple[str, str], float] = {}
-    wall: dict[tuple[str, str], float] = {}
+    extrapolated from running trials' progress (training only), else scaled from another variant's time on the task by
+    the two variants' ratio where both ran, else the variant's mean; grid points with none are counted apart."""
+    times: dict[tuple[str, str], np.ndarray] = {}  # (CPU, wall-clock) seconds per run
     for task, by_variant in runs.items():
         for variant, variant_runs in by_variant.items():
-            cpu[task, variant] = float(np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in variant_runs]))
-            wall[task, variant] = float(np.mean([r["wall_seconds"] + r["eval_wall_seconds"] for r in variant_runs]))
-    total = remaining = 0.0
-    unknown = extrapolated = 0
+            cpu = np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in variant_runs])
+            wall = np.mean([r["wall_seconds"] + r["eval_wall_seconds"] for r in variant_runs])
+            times[task, variant] = np.array([cpu, wall])
     mixed = len({c.protocol for c in campaigns}) > 1
-    for campaign in campaigns:
-        for task, variant, seed in campaign.grid:
-            key = (task, f"{campaign.protocol}:{variant}" if mixed else variant)
-            if key not in cpu and progress.get(key):
-                steps = np.mean([p["steps"] for p in progress[key]])
-                cpu[key] = float(np.mean([p["cpu_s"] for p in progress[key]])) / steps * campaign.timesteps
-                wall[key] = float(np.mean([p["wall_s"] for p in progress[key]])) / steps * campaign.timesteps
-                extrapolated += 1
-            done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
-            same_variant = [k for k in cpu if k[1] == key[1]]
-            if key not in cpu and same_variant:  # the variant's mean over the tasks where its time is known
-                cpu[key] = float(np.mean([cpu[k] for k in same_variant]))
-                wall[key] = float(np.mean([wall[k] for k in same_variant]))
-            if key not in cpu:
-                unknown += not done
-                continue
-            total += cpu[key]
-            remaining += 0.0 if done else wall[key]
+    points = [
+        (c, (task, f"{c.protocol}:{variant}" if mixed else variant), seed) for c in campaigns for task, variant, seed in c.grid
+    ]
+    for campaign, key, _ in points:
+        if key not in times and progress.get(key):
+            measured = np.mean([(p["cpu_s"], p["wall_s"]) for p in progress[key]], 0)
+            times[key] = measured / np.mean([p["steps"] for p in progress[key]]) * campaign.timesteps
+    total = remaining = 0.0
+    unknown = 0
+    for _, key, seed in points:
+        time = times[key] if key in times else scaled_time(times, key)
+        done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
+        if time is None:
+            unknown += not done
+            continue
+        total += time[0]
+        remaining += 0.0 if done else time[1]
     if not remaining and not unknown:
         return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
-    text = (f"Expected duration: about {total / 3600:.1f} CPU-hours, {remaining / 3600 / workers:.1f} wall-clock hours "
+    text = (f"Expected duration: about {total / 3600:.1f} CPU-hours in all, {remaining / 3600 / workers:.1f} wall-clock hours "
             f"left on {workers} workers (from the runs' mean times per task and variant, else running trials' "
-            "progress).")  # fmt: skip
+            "progress, else other variants' times scaled by their ratio).")  # fmt: skip
     if unknown:
         text += f" Not counted: {unknown} runs of variants with no run yet."
     return text
+
+
+def scaled_time(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) -> np.ndarray | None:
+    """A variant's time on a task: another variant's time there times their mean ratio on the tasks where both ran,
+    else the variant's mean over the tasks where it ran; None where the variant has no time yet."""
+    task, variant = key
+    own = [k for k in times if k[1] == variant]
+    estimates = [
+        times[task, other] * np.mean([times[t, variant] / times[t, other] for t, _ in own if (t, other) in times], 0)
+        for t_, other in times
+        if t_ == task and any((t, other) in times for t, _ in own)
+    ]
+    if estimates:
+        return np.mean(estimates, 0)
+    return np.mean([times[k] for k in own], 0) if own else None
 
 
 def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -> None:

@@ -34,9 +34,7 @@ CONFIGURATIONS = {
         ),
     ),
     # the paper's order and rates: critic first, Monte-Carlo value targets, actor 1e-4 / critic 1e-3
-    "paper-order": dict(
-        update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3
-    ),
+    "paper-order": dict(update_order="critic_first", value_target_lambda=1.0, learning_rate=1e-4, critic_learning_rate=1e-3),
     # the critic: element-wise product of the state stream and the chi stream, a wider head
     "product-critic": dict(
         policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64]), critic_combine="product", critic_head_arch=[256]),

@@ -1,7 +1,7 @@
 """Quickstart: train PPOPeVFA, save the model and its policy history, load both, and go on training.
 
-    python examples/quickstart.py                 # Pendulum-v1, 20k steps
-    python examples/quickstart.py --tiny          # seconds (CI)
+python examples/quickstart.py                 # Pendulum-v1, 20k steps
+python examples/quickstart.py --tiny          # seconds (CI)
 """
 
 import argparse

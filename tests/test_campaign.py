@@ -320,11 +320,18 @@ def test_report_statistics_by_hand(monkeypatch):
     # expected duration: the whole grid, a missing seed at its variant's mean time on the task; a complete grid says so
     grid = campaign.Campaign("sb3", ("A",), ("ppo",), (0, 1), 1000, eval_freq=1000)
     done = {"seed": 0, "cpu_seconds": 3000.0, "eval_cpu_seconds": 600.0, "wall_seconds": 3600.0, "eval_wall_seconds": 0.0}
-    assert "about 2.0 CPU-hours, 0.5 wall-clock hours left on 2" in campaign_report.expected_duration(
+    assert "about 2.0 CPU-hours in all, 0.5 wall-clock hours left on 2" in campaign_report.expected_duration(
         {"A": {"ppo": [done]}}, {}, [grid], workers=2
     )
     complete = {"A": {"ppo": [done, {**done, "seed": 1}]}}
     assert campaign_report.expected_duration(complete, {}, [grid], workers=2).startswith("Duration: 2.0 CPU-hours")
+    # a variant not yet run on a task: another variant's time there, times the two variants' ratio where both ran
+    two_variants = campaign.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
+    slow = {**done, "cpu_seconds": 6600.0, "wall_seconds": 7200.0}  # twice ppo's time on A
+    runs = {"A": {"ppo": [done], "opr": [slow]}, "B": {"ppo": [{**done, "cpu_seconds": 1200.0, "wall_seconds": 1800.0}]}}
+    assert "about 4.5 CPU-hours in all, 1.0 wall-clock hours left on 1" in campaign_report.expected_duration(
+        runs, {}, [two_variants], workers=1
+    )  # 1 + 2 + 0.5 + 0.5 * 2 CPU-hours of training and evaluation; 0.5 * 2 wall-clock hours left on B
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
