@@ -12,8 +12,9 @@ any number of machines pull trials from one database, with Optuna's heartbeat fa
 ``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials whose
 worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each again;
 a trial stopped by SIGINT/SIGTERM is enqueued again too, and goes on from its last checkpoint where the machine kept
-it. A trial whose training raised stays failed (the report lists it). A task, variant and seed counts once in the
-report, however often it ran.
+it. A grid point whose worker died more than ``MAX_RETRY`` times (stops do not count) and a trial whose training
+raised stay failed (the report lists both). A worker out of grid points waits while others run the last ones and
+takes over any whose worker dies. A task, variant and seed counts once in the report, however often it ran.
 
     # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
     nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &
@@ -555,11 +556,27 @@ def _boot_id() -> str:
         return ""
 
 
+def deaths(latest: FrozenTrial, trials: dict[int, FrozenTrial]) -> int:
+    """How many times the worker of a grid point died (a trial failed as "worker gone"), over ``latest`` and the
+    trials it retries (``trials``: by number); deliberate stops (SIGINT, SIGTERM) do not count."""
+    attempts = [*latest.system_attrs.get("retry_history", []), latest.number]
+    return sum(trials[n].user_attrs.get("interrupted") == "worker gone" for n in attempts if n in trials)
+
+
+def retried_enough(latest: FrozenTrial, trials: dict[int, FrozenTrial]) -> bool:
+    """Whether an interrupted grid point is left failed: its worker died more than ``MAX_RETRY`` times."""
+    return _interrupted(latest) and deaths(latest, trials) > MAX_RETRY
+
+
 def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0) -> list[int]:
-    """Fail the RUNNING trials of dead workers (journal storage; a database's heartbeat does it there) and enqueue
-    each grid point whose latest trial was interrupted or its worker gone again, at most ``MAX_RETRY`` times.
-    Returns the numbers of the trials retried."""
+    """Fail the RUNNING trials of dead workers (journal storage: the process on this machine is gone, else no
+    heartbeat for ``stale_after`` seconds; a database: Optuna's heartbeat, whose callback enqueues the retry) and
+    enqueue each grid point whose latest trial was interrupted again, unless its worker died more than ``MAX_RETRY``
+    times. Returns the numbers of the trials retried."""
     storage = study._storage
+    if isinstance(storage, RDBStorage):
+        optuna.storages.fail_stale_trials(study)
+    by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
     retried = []
     for trials in grid_states(study, campaign).values():
         if any(t.state in (TrialState.COMPLETE, TrialState.WAITING) for t in trials):
@@ -576,7 +593,7 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
             continue
         latest = trials[-1]
         history = latest.system_attrs.get("retry_history", [])
-        if _interrupted(latest) and len(history) < MAX_RETRY:
+        if _interrupted(latest) and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}}):
             # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
             enqueue(study, grid_point(latest), failed_trial=latest.system_attrs.get("failed_trial", latest.number),
                     retry_history=[*history, latest.number])  # fmt: skip
@@ -665,17 +682,35 @@ def _stop(*_: Any) -> None:
     raise KeyboardInterrupt
 
 
-def work(names: list[str], storage: str | None) -> None:
-    """One worker: trials of the campaigns one after another, each campaign's grid before the next one's."""
+def work(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
+    """One worker: trials of the campaigns one after another, each campaign's grid before the next one's; then, while
+    other workers run the last grid points, it waits, and runs any whose worker dies."""
     signal.signal(signal.SIGTERM, _stop)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
-    for name in names:
-        work_on(name, storage)
+    studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
+    for name, study, campaign in studies:
+        work_on(name, study, campaign)
+    delay = 1.0
+    while any(running(study, campaign) for _, study, campaign in studies):
+        time.sleep(delay)
+        delay = min(2 * delay, 60.0)
+        for name, study, campaign in studies:
+            recover(study, campaign, stale_after)
+            work_on(name, study, campaign)
 
 
-def work_on(name: str, storage: str | None) -> None:
-    study, campaign = open_study(name, storage_of(name, storage))
+def running(study: optuna.Study, campaign: Campaign) -> int:
+    """Grid points without a complete trial whose latest trial runs."""
+    count = 0
+    for trials in grid_states(study, campaign).values():
+        trials = [t for t in trials if t.state != TrialState.PRUNED]  # not duplicates
+        complete = any(t.state == TrialState.COMPLETE for t in trials)
+        count += bool(trials) and trials[-1].state == TrialState.RUNNING and not complete
+    return count
+
+
+def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
@@ -708,6 +743,7 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float)
               f"{pending(study, campaign)} waiting", flush=True)  # fmt: skip
         studies.append((study, campaign))
     command = [sys.executable, str(pathlib.Path(__file__).resolve()), "work", "--campaign", *names]
+    command += ["--stale-after", str(stale_after)]
     command += ["--storage", storage] if storage else []
     processes = [subprocess.Popen(command) for _ in range(workers)]
 
@@ -783,7 +819,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "run":
         run(args.campaign, args.storage, args.workers, args.stale_after)
     elif args.command == "work":
-        work(args.campaign, args.storage)
+        work(args.campaign, args.storage, args.stale_after)
     else:
         status(args.campaign, args.storage)
 

@@ -18,7 +18,7 @@ from typing import Any
 import aggregate
 import numpy as np
 import optuna
-from campaign import LOCAL_GENERALIZATION, Campaign, grid_states, open_study, storage_of
+from campaign import LOCAL_GENERALIZATION, Campaign, deaths, grid_states, open_study, retried_enough, storage_of
 from optuna.trial import TrialState
 
 from sb3_pevfa.protocols import PAPER_DEVIATIONS
@@ -73,6 +73,7 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
     """task -> variant -> the completed runs' user attributes (one per seed: a grid point's first complete trial),
     (task, variant) -> the progress of running trials, the notes on failed or duplicated grid points, and the
     campaigns. Variants are named ``protocol:variant`` where the campaigns mix protocols."""
+    names = list(dict.fromkeys(names))  # a campaign named twice counts once
     runs: Runs = {}
     progress: dict[tuple[str, str], list[dict[str, float]]] = {}
     notes, campaigns, resumed = [], [], []
@@ -80,11 +81,14 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
     mixed = len({campaign.protocol for _, campaign in studies}) > 1
     for study, campaign in studies:
         campaigns.append(campaign)
+        by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
         for (task, variant, seed), trials in grid_states(study, campaign).items():
             label = f"{campaign.protocol}:{variant}" if mixed else variant
             complete = [t for t in trials if t.state == TrialState.COMPLETE]
             running = [
-                t.user_attrs["progress"] for t in trials if t.state == TrialState.RUNNING and "progress" in t.user_attrs
+                {**t.user_attrs["progress"], "seed": seed}
+                for t in trials
+                if t.state == TrialState.RUNNING and "progress" in t.user_attrs
             ]
             progress.setdefault((task, label), []).extend(running)
             if complete:
@@ -95,6 +99,9 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
                 notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+            elif trials and retried_enough(trials[-1], by_number):
+                died = f"trial {trials[-1].number}'s worker died {deaths(trials[-1], by_number)} times"
+                notes.append(f"{task} {label} seed {seed}: {died}: not retried again")
     if resumed:
         notes.insert(0, f"Went on from a checkpoint (at env step): {', '.join(resumed)}")
     order = list(dict.fromkeys(task for campaign in campaigns for task in campaign.tasks))
@@ -155,6 +162,18 @@ def table(runs: Runs, baseline: str, paper: bool) -> list[str]:
     return lines
 
 
+def comparable(runs: Runs, baseline: str, variant: str) -> list[str]:
+    """The tasks where the variant and the baseline both have runs and the baseline's mean max average return is
+    positive: a ratio to a mean at or below zero would reverse or lose the order of the scores."""
+    return [
+        t
+        for t, by_variant in runs.items()
+        if by_variant.get(variant)
+        and by_variant.get(baseline)
+        and np.mean([r["max_average_return"] for r in by_variant[baseline]]) > 0
+    ]
+
+
 def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregate.TaskScores]]:
     """IQM with CIs, probability of improvement, over the tasks where the baseline and the variant both have runs: per
     env step (max average return) and per CPU-second (best return within the baseline's mean CPU time of a run)."""
@@ -162,13 +181,16 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
              f"{baseline}) | the same at {baseline}'s CPU time: IQM [95 % CI], P |", "|---|---|---|---|---|---|"]  # fmt: skip
     normalized: dict[str, aggregate.TaskScores] = {}
     for variant in _compared(runs):
-        tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
+        tasks = comparable(runs, baseline, variant)
         if not tasks:
             continue
         cells = []
         for score in (lambda r, base_runs: r["max_average_return"], at_baseline_cpu):
             scores = {t: np.array([score(r, runs[t][baseline]) for r in runs[t][variant]]) for t in tasks}
             base = {t: np.array([score(r, runs[t][baseline]) for r in runs[t][baseline]]) for t in tasks}
+            if any(np.isnan(v).any() for v in (*scores.values(), *base.values())):  # a run without an evaluation then
+                cells += ["— (a run has no evaluation in that time)", "—"]
+                continue
             scaled = aggregate.normalized(scores, base)
             normalized.setdefault(variant, scaled)  # the performance profile's: per env step
             low, high = aggregate.normalized_bootstrap_ci(scores, base)
@@ -187,7 +209,7 @@ def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:
     campaign is of the paper's protocol, so that no variant name carries a protocol)."""
     lines = []
     for variant in _compared(runs):
-        tasks = [t for t, by_variant in runs.items() if by_variant.get(variant) and by_variant.get(baseline)]
+        tasks = comparable(runs, baseline, variant)
         if variant == baseline or not tasks:
             continue
         scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}
@@ -355,9 +377,10 @@ def training_signals(runs: Runs) -> list[str]:
 
 
 def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
-    """The campaigns' CPU time and the wall-clock time left: per task and variant, the completed runs' mean, else
-    extrapolated from running trials' progress (training only), else scaled from another variant's time on the task by
-    the two variants' ratio where both ran, else the variant's mean; grid points with none are counted apart."""
+    """The campaigns' CPU time and the wall-clock time left (a running trial's less its training so far). A run's
+    time per task and variant: the completed runs' mean, else extrapolated from running trials' progress (training
+    only), else scaled from another variant's time on the task by the two variants' ratio where both ran, else the
+    variant's mean; grid points with none are counted apart."""
     times: dict[tuple[str, str], np.ndarray] = {}  # (CPU, wall-clock) seconds per run
     for task, by_variant in runs.items():
         for variant, variant_runs in by_variant.items():
@@ -376,12 +399,13 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
     unknown = 0
     for _, key, seed in points:
         time = times[key] if key in times else scaled_time(times, key)
+        elapsed = max([p["wall_s"] for p in progress.get(key, []) if p.get("seed") == seed], default=0.0)
         done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
         if time is None:
             unknown += not done
             continue
         total += time[0]
-        remaining += 0.0 if done else time[1]
+        remaining += 0.0 if done else max(time[1] - elapsed, 0.0)  # a running trial: what it has left
     if not remaining and not unknown:
         return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
     text = (f"Expected duration: about {total / 3600:.1f} CPU-hours in all, {remaining / 3600 / workers:.1f} wall-clock hours "
@@ -463,7 +487,12 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         return "\n".join(lines)
     commits = sorted({r["commit"] for bv in runs.values() for rs in bv.values() for r in rs})
     machines = sorted({r["machine"] for bv in runs.values() for rs in bv.values() for r in rs})
-    versions = next(iter(next(iter(runs.values())).values()))[0]["versions"]
+    made = [r for bv in runs.values() for rs in bv.values() for r in rs]
+    versions = {name: "/".join(sorted({str(r["versions"].get(name, "?")) for r in made})) for name in made[0]["versions"]}
+    flipped = [t for t, bv in runs.items() if bv.get(baseline) and t not in comparable(runs, baseline, baseline)]
+    if flipped:
+        notes.append(f"Left out of the aggregates and the target: {', '.join(flipped)}, where {baseline}'s mean is not "
+                     "positive (a ratio to it would reverse the order of the scores)")  # fmt: skip
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
     beside = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
     aggregate_lines, normalized = aggregates(runs, baseline)

@@ -5,6 +5,7 @@ import json
 import os
 import pathlib
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +18,7 @@ from optuna.trial import TrialState
 
 ROOT = pathlib.Path(__file__).parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+import aggregate  # noqa: E402
 import campaign  # noqa: E402
 import campaign_report  # noqa: E402
 
@@ -131,7 +133,7 @@ def test_a_killed_workers_trial_is_retried_exactly_once(tmp_path):
 
 
 def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tmp_path):
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3), 4000, 2000, 2)
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3, 4), 4000, 2000, 2)
     study, _ = campaign.open_study("recover", campaign.storage_of("recover", str(tmp_path / "r.journal")), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
 
@@ -142,11 +144,20 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
 
     add(0, interrupted="stopped")  # SIGINT / SIGTERM
     add(1)  # its training raised: it stays failed
-    add(2, {"retry_history": list(range(campaign.MAX_RETRY))}, interrupted="worker gone")  # retried often enough
-    assert campaign.recover(study, tiny) == [0] and campaign.recover(study, tiny) == []  # enqueued once
+    for attempt in range(campaign.MAX_RETRY + 1):  # trials 2-5: its worker died once and on each retry
+        add(2, {"retry_history": list(range(2, 2 + attempt))} if attempt else None, interrupted="worker gone")
+    for attempt in range(campaign.MAX_RETRY + 2):  # trials 6-10: stopped again and again, never dead
+        add(3, {"retry_history": list(range(6, 6 + attempt))} if attempt else None, interrupted="stopped")
+    assert campaign.recover(study, tiny) == [0, 10] and campaign.recover(study, tiny) == []  # enqueued once
     waiting = [t for t in study.get_trials() if t.state == TrialState.WAITING]
-    assert [campaign.grid_point(t) for t in waiting] == [(TASK, "ppo", 0)] and waiting[0].system_attrs["retry_history"] == [0]
-    assert campaign.pending(study, tiny) == 2  # seed 0 again and seed 3, never started; not seeds 1 and 2
+    assert [campaign.grid_point(t) for t in waiting] == [(TASK, "ppo", 0), (TASK, "ppo", 3)]
+    assert waiting[0].system_attrs["retry_history"] == [0] and waiting[1].system_attrs["retry_history"] == [6, 7, 8, 9, 10]
+    assert campaign.pending(study, tiny) == 3  # seeds 0 and 3 again and seed 4, never started; not seeds 1 and 2
+    notes = campaign_report.collect(["recover"], str(tmp_path / "r.journal"))[2]
+    assert notes == [
+        f"{TASK} ppo seed 1: trial 1 failed (its training raised)",
+        f"{TASK} ppo seed 2: trial 5's worker died {campaign.MAX_RETRY + 1} times: not retried again",
+    ]
     with pytest.raises(ValueError, match="Unknown variants \\['opr'\\] of protocol 'paper'"):
         campaign.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
     with pytest.raises(ValueError, match="Unknown campaign 'nothing'"):
@@ -196,15 +207,43 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
 
     monkeypatch.setattr(campaign, "train", train)
     with pytest.raises(KeyboardInterrupt):
-        campaign.work_on("draws", journal)
+        campaign.work_on("draws", study, tiny)
     assert campaign.recover(study, tiny) == [2]
-    campaign.work_on("draws", journal)
+    campaign.work_on("draws", study, tiny)
     trials = study.get_trials()
     assert sorted(trained) == sorted([*range(8), trained[2]])  # the stopped one twice, every other point once
     assert [t.state for t in trials].count(TrialState.PRUNED) == 0 and len(trials) == 9
     assert sorted(t.params["seed"] for t in trials if t.state == TrialState.COMPLETE) == list(range(8))
     retry = next(t for t in trials if "retry_history" in t.system_attrs)
     assert retry.params == trials[2].params and retry.state == TrialState.COMPLETE
+
+
+def test_a_worker_with_nothing_left_waits_for_running_trials_and_runs_one_whose_worker_died(tmp_path, monkeypatch):
+    """The last grid point runs in another worker, which dies: a worker out of work does not exit but retries it."""
+    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    journal = str(tmp_path / "w.journal")
+    study, _ = campaign.open_study("wait", campaign.storage_of("wait", journal), tiny)
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a worker of this machine that is gone, its heartbeat recent
+    worker = {"host": socket.gethostname(), "boot_id": campaign._boot_id(), "pid": gone.pid}
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    params = {"task": TASK, "variant": "ppo", "seed": 0}
+    attrs = {"worker": worker, "heartbeat": time.time()}
+    running = optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions, user_attrs=attrs)
+    study.add_trial(running)
+    assert campaign.pending(study, tiny) == 0 and campaign.running(study, tiny) == 1
+    trained = []
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        trained.append(seed)
+        keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
+        return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
+
+    monkeypatch.setattr(campaign, "train", train)
+    campaign.work(["wait"], journal)
+    trials = study.get_trials()
+    assert trained == [0] and [t.state for t in trials] == [TrialState.FAIL, TrialState.COMPLETE]
+    assert trials[0].user_attrs["interrupted"] == "worker gone" and trials[1].system_attrs["retry_history"] == [0]
 
 
 def test_the_report_names_the_runs_that_went_on_from_a_checkpoint_in_one_line(tmp_path):
@@ -332,6 +371,10 @@ def test_report_statistics_by_hand(monkeypatch):
     assert "about 4.5 CPU-hours in all, 1.0 wall-clock hours left on 1" in campaign_report.expected_duration(
         runs, {}, [two_variants], workers=1
     )  # 1 + 2 + 0.5 + 0.5 * 2 CPU-hours of training and evaluation; 0.5 * 2 wall-clock hours left on B
+    running = {("B", "opr"): [{"steps": 500, "cpu_s": 1800.0, "wall_s": 1800.0, "seed": 0}]}  # B's run half done
+    assert "about 4.5 CPU-hours in all, 0.5 wall-clock hours left on 1" in campaign_report.expected_duration(
+        runs, running, [two_variants], workers=1
+    )  # extrapolated from its progress: 3600 CPU-s and wall-s in all, 1800 of them left
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
@@ -339,6 +382,38 @@ def test_report_statistics_by_hand(monkeypatch):
     fixed = campaign_report.aggregate.stratified_bootstrap_ci(campaign_report.aggregate.normalized(scores, base))
     low, high = campaign_report.aggregate.normalized_bootstrap_ci(scores, base)
     assert high - low > 2 * (fixed[1] - fixed[0]) and low < 2.0 < high
+
+
+def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_compare(monkeypatch):
+    # stratified: each task keeps its two runs, so the IQM of [1, 1, 3, 3] never moves; pooled draws would move it
+    low, high = aggregate.stratified_bootstrap_ci({"A": np.array([1.0, 1.0]), "B": np.array([3.0, 3.0])})
+    assert (low, high) == (2.0, 2.0)
+
+    def scored(value: float, cpu: float = 1.0) -> dict:
+        return {"max_average_return": value, "cpu_seconds": 2.0, "curve": {"mean": [value], "cpu_s": [cpu]}}
+
+    # a task where the baseline's mean is negative: -50 against -100 is better, a ratio 0.5 would read worse
+    runs = {"A": {"ppo": [scored(100.0)] * 2, "opr-e2e": [scored(150.0)] * 2},
+            "B": {"ppo": [scored(-100.0)] * 2, "opr-e2e": [scored(-50.0)] * 2}}  # fmt: skip
+    assert campaign_report.comparable(runs, "ppo", "opr-e2e") == ["A"]
+    rows, _ = campaign_report.aggregates(runs, "ppo")
+    assert rows[3] == "| opr-e2e | 1 | 2 | 1.50 [1.50, 1.50] | 1.00 | 1.50 [1.50, 1.50], 1.00 |"
+    assert campaign_report.target(runs, "ppo", {})[0].startswith("- opr-e2e: above ppo on 1 of 1 tasks, IQM 1.50")
+    # a run with no evaluation within the baseline's CPU time: no IQM at that time rather than a nan counted as a loss
+    late = {"A": {"ppo": [scored(100.0)] * 2, "opr-e2e": [scored(150.0, cpu=3.0)] * 2}}
+    assert campaign_report.aggregates(late, "ppo")[0][3].endswith("| — (a run has no evaluation in that time), — |")
+    # the report says which tasks it left out
+    made = {"final_return": 0.0, "eval_cpu_seconds": 0.0, "wall_seconds": 2.0, "eval_wall_seconds": 0.0, "seed": 0,
+            "steps_per_cpu_second": 1.0, "steps_per_wall_second": 1.0, "commit": "abc", "machine": "m",
+            "versions": dict.fromkeys(("torch", "stable_baselines3", "gymnasium", "mujoco"), "1")}  # fmt: skip
+    runs = {
+        task: {("opr" if v == "opr-e2e" else v): [{**r, **made} for r in rs] for v, rs in bv.items()}
+        for task, bv in runs.items()
+    }
+    grid = campaign.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
+    monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [grid]))
+    text = campaign_report.report(["sign"], None, "ppo", 2, None)
+    assert "- Left out of the aggregates and the target: B, where ppo's mean is not positive" in text
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
