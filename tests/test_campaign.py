@@ -448,17 +448,26 @@ def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
     def stopped_at_6000(model, *args, **kwargs):
         if model.num_timesteps == 6000 and not (folder / "stopped").exists():
             (folder / "stopped").touch()
+            start = time.process_time()
+            while time.process_time() - start < 2.0:  # two seconds of CPU after the checkpoint, lost with the worker
+                pass
             raise KeyboardInterrupt  # the worker ends mid-rollout
         return evaluate(model, *args, **kwargs)
 
     monkeypatch.setattr(campaign, "evaluate_policy", stopped_at_6000)
+    start = time.process_time()
     with pytest.raises(KeyboardInterrupt):
         campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+    first_cpu = time.process_time() - start
     state = json.loads((folder / "state.json").read_text())
     assert (
         state["timesteps"] == 4000 and state["curve"]["steps"] == [2000, 4000] and state["n_policies"] == 3
     )  # the third recorded as its rollout starts
+    start = time.process_time()
     result = campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+    resumed_cpu = time.process_time() - start
+    counted = result["cpu_seconds"] + result["eval_cpu_seconds"]  # without the segment lost after the checkpoint
+    assert state["cpu"] + state["eval_cpu"] < counted <= first_cpu - 2.0 + resumed_cpu
     assert result["resumed_from"] == 4000 and result["timesteps"] == 8000 and not folder.exists()
     assert result["curve"]["steps"] == [2000, 4000, 6000, 8000] and result["curve"]["mean"][:2] == state["curve"]["mean"]
     cpu = result["curve"]["cpu_s"]
