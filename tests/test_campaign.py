@@ -10,9 +10,11 @@ import subprocess
 import sys
 import time
 
+import mujoco
 import numpy as np
 import optuna
 import pytest
+import torch
 from optuna.distributions import CategoricalDistribution
 from optuna.trial import TrialState
 
@@ -55,6 +57,7 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     assert stdout.count("tiny #") == 2  # one line per finished trial
     trials = _study("tiny", journal).get_trials()
     assert sorted((t.params["variant"], t.state.name) for t in trials) == [("opr-e2e", "COMPLETE"), ("ppo", "COMPLETE")]
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     for trial in trials:
         attrs = trial.user_attrs
         curve = attrs["curve"]
@@ -63,7 +66,8 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
         assert [trial.intermediate_values[s] for s in curve["steps"]] == curve["mean"]
         assert 0 < curve["cpu_s"][0] < curve["cpu_s"][1] <= attrs["cpu_seconds"] and attrs["eval_cpu_seconds"] > 0
         assert attrs["steps_per_cpu_second"] == pytest.approx(4000 / attrs["cpu_seconds"])
-        assert set(attrs["versions"]) >= {"torch", "stable_baselines3", "gymnasium", "mujoco"} and attrs["commit"]
+        assert attrs["versions"]["torch"] == torch.__version__ and attrs["versions"]["mujoco"] == mujoco.__version__
+        assert attrs["commit"].removesuffix("+dirty") == head  # the code the worker ran
     # the same command again: the grid is complete, nothing runs twice
     again = _campaign("run", "--campaign", "tiny", "--storage", str(journal), "--workers", "2")
     assert "tiny: 2/2 grid points complete, 0 waiting" in again and len(_study("tiny", journal).get_trials()) == 2
