@@ -496,6 +496,8 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
     beside = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
     aggregate_lines, normalized = aggregates(runs, baseline)
+    zoo = [c for c in campaigns if c.protocol == "zoo"]  # an rl-zoo3 training times its evaluations with itself
+    apart = "apart" if not zoo else "included" if len(zoo) == len(campaigns) else "apart, included in protocol zoo's runs"
     sections = [
         [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
          f"ratio to {baseline}'s mean{beside}:"],
@@ -518,7 +520,7 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
             ["The paper's ratios to its PPO, mean over its six tasks: " + ", ".join(f"{v} {r:.2f}" for v, r in ratios.items())]
         )
     sections += [
-        [f"Speed (env steps per CPU-second, evaluations apart; wall-clock beside), best return in {baseline}'s CPU time:"],
+        [f"Speed (env steps per CPU-second, evaluations {apart}; wall-clock beside), best return in {baseline}'s CPU time:"],
         speed(runs, baseline),
         [expected_duration(runs, progress, campaigns, workers)],
     ]  # fmt: skip

@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+import types
 
 import mujoco
 import numpy as np
@@ -418,6 +419,10 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [grid]))
     text = campaign_report.report(["sign"], None, "ppo", 2, None)
     assert "- Left out of the aggregates and the target: B, where ppo's mean is not positive" in text
+    assert "Speed (env steps per CPU-second, evaluations apart;" in text
+    zoo = types.SimpleNamespace(**{**vars(grid), "protocol": "zoo", "grid": grid.grid})  # rl-zoo3 times evaluations in
+    monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
+    assert "Speed (env steps per CPU-second, evaluations included;" in campaign_report.report(["zoo"], None, "ppo", 2, None)
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
