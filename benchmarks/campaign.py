@@ -767,9 +767,14 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float)
         raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
 
 
-def status(names: list[str], storage: str | None) -> None:
+def status(names: list[str], storage: str | None, workers: int) -> None:
+    """Each grid point's trials, then the campaigns' expected duration (the report's estimate)."""
+    from campaign_report import collect, expected_duration
+
     for name in names:
         status_of(name, storage)
+    runs, progress, _, campaigns = collect(names, storage)
+    print(expected_duration(runs, progress, campaigns, workers))
 
 
 def status_of(name: str, storage: str | None) -> None:
@@ -821,7 +826,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.command == "work":
         work(args.campaign, args.storage, args.stale_after)
     else:
-        status(args.campaign, args.storage)
+        status(args.campaign, args.storage, args.workers)
 
 
 if __name__ == "__main__":

@@ -76,6 +76,7 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     shown = _campaign("status", "--campaign", "tiny", "--storage", str(journal))
     for trial in trials:
         assert f"#{trial.number}:COMPLETE (max average return {trial.value:.0f})" in shown
+    assert "nothing left to run" in shown.splitlines()[-1]
     # a stored campaign is never redefined
     with pytest.raises(ValueError, match="never changes"):
         _campaign_main("run", "--campaign", "tiny", "--storage", str(journal), *_definition("ppo"))
