@@ -262,7 +262,9 @@ def test_the_report_names_the_runs_that_went_on_from_a_checkpoint_in_one_line(tm
                                             params={"task": TASK, "variant": "ppo", "seed": seed},
                                             user_attrs={"resumed_from": resumed}))  # fmt: skip
     notes = campaign_report.collect(["resumed"], journal)[2]
-    assert notes == [f"Went on from a checkpoint (at env step): {TASK} ppo seed 0 (2,000), {TASK} ppo seed 2 (4,000)"]
+    assert notes == [
+        f"Went on from a checkpoint (task, variant, seed, at env step): {TASK} ppo 0 (2,000), {TASK} ppo 2 (4,000)"
+    ]
 
 
 def test_a_new_trial_leaves_its_grid_point_to_a_retried_one():
@@ -355,6 +357,7 @@ def test_report_statistics_by_hand(monkeypatch):
     two["A"]["opr-e2e+local-generalization"] = two["A"]["opr-e2e"]  # the diagnostic's runs: in the table only
     assert "opr-e2e+local-generalization" in campaign_report.table(two, "ppo", paper=False)[0]
     assert [row.split(" |")[0] for row in campaign_report.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
+    two["B"]["opr-e2e-default-schedule"] = two["B"]["opr-e2e"]  # the target is the paper's OPR-E2E's alone
     assert len(campaign_report.target(two, "ppo", {})) == 1
     # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
     nan = float("nan")
@@ -420,10 +423,10 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [grid]))
     text = campaign_report.report(["sign"], None, "ppo", 2, None)
     assert "- Left out of the aggregates and the target: B, where ppo's mean is not positive" in text
-    assert "Speed (env steps per CPU-second, evaluations apart;" in text
+    assert "Speed: ppo's env steps per CPU-second (wall-clock beside; evaluations apart)" in text
     zoo = types.SimpleNamespace(**{**vars(grid), "protocol": "zoo", "grid": grid.grid})  # rl-zoo3 times evaluations in
     monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
-    assert "Speed (env steps per CPU-second, evaluations included;" in campaign_report.report(["zoo"], None, "ppo", 2, None)
+    assert "(wall-clock beside; evaluations included)" in campaign_report.report(["zoo"], None, "ppo", 2, None)
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
