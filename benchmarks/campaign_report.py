@@ -208,7 +208,7 @@ def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:
     the variant or the baseline has fewer runs than ``planned`` (variant -> runs in its campaigns' grids; the
     report's, where every campaign is of the paper's protocol, so that no variant name carries a protocol)."""
     variant = TARGET["variant"]
-    tasks = comparable(runs, baseline, variant)
+    tasks = comparable(runs, baseline, variant) if variant != baseline else []
     if not tasks:
         return []
     scores = {t: np.array([r["max_average_return"] for r in runs[t][variant]]) for t in tasks}

@@ -318,7 +318,7 @@ def test_report_statistics_by_hand(monkeypatch):
                 "worker": {"boot_id": boot}}  # fmt: skip
 
     rows = campaign_report.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
-    assert rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
+    assert rows[0] == "| task | ppo | opr-e2e |" and rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
 
     # per env step the max average returns, 40 / 20; per CPU-second the best within PPO's 2 CPU-seconds, 30 / 10
     def scored(values: list[float], cpu: list[float]) -> dict:
@@ -358,7 +358,8 @@ def test_report_statistics_by_hand(monkeypatch):
     assert "opr-e2e+local-generalization" in campaign_report.table(two, "ppo", paper=False)[0]
     assert [row.split(" |")[0] for row in campaign_report.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
     two["B"]["opr-e2e-default-schedule"] = two["B"]["opr-e2e"]  # the target is the paper's OPR-E2E's alone
-    assert len(campaign_report.target(two, "ppo", {})) == 1
+    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: met"]
+    assert campaign_report.target(two, "opr-e2e", {}) == []  # nor against itself as the baseline
     # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
     nan = float("nan")
     logged = {"train/explained_variance": [0.0, 0.0, 0.0, 0.0, 0.5, 0.7], "pevfa/value_chi_gradient": [nan] * 3 + [1, 2, 6]}
