@@ -31,6 +31,8 @@ setup(
     python_requires=">=3.10",
     install_requires=[
         "stable_baselines3>=2.4.0,<3.0",
+        # the time feature of the authors' protocol (sb3_pevfa.protocols.make_authors_env)
+        "sb3-contrib>=2.4.0",
         # The CPU wheel 2.13.0 satisfies this range: install it first on CPU-only machines.
         # >= 2.4: fused Adam on CPU (PeVFA policies' default optimizer settings).
         "torch>=2.4,<3.0",

@@ -68,7 +68,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
-from sb3_pevfa.protocols import paper_protocol
+from sb3_pevfa.protocols import authors_protocol, make_authors_env, paper_protocol
 
 try:  # Optuna >= 4.9's names of the callback that enqueues a stale trial again, and of RDBStorage's argument
     from optuna.storages import RetryHeartbeatStaleTrialCallback
@@ -117,6 +117,13 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         # PPO (2x128 ReLU, its learning rate) trained beside it; the diagnostic's critic counts in its CPU time
         "opr-e2e+local-generalization": paper_protocol("ppo_pevfa"),
     },
+    # the authors' code's training loop (sb3_pevfa.protocols.authors_protocol), on make_authors_env's envs
+    "authors": {
+        "ppo": authors_protocol("ppo"),
+        "opr-e2e": authors_protocol("ppo_pevfa"),
+        # the paper's control: a fixed random code per policy in place of a learned representation (Ran PR)
+        "random": authors_protocol("ppo_pevfa", representation="random"),
+    },
     # learning.py's variants, trained through rl-zoo3's entry point on one hyperparameter file (the campaign's conf)
     "zoo": dict(learning.VARIANTS),
     "sb3": {
@@ -128,6 +135,11 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
 }
 
 
+#: Protocols whose evaluation samples actions (the authors' code); the others evaluate the deterministic policy
+STOCHASTIC_EVALUATION = {"authors"}
+#: Protocols whose envs are not Gymnasium's as made (task, seed) -> VecEnv
+ENV_MAKERS = {"authors": make_authors_env}
+
 #: Variants that run a diagnostic beside their training: variant -> the callback's constructor arguments
 LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128))}
 
@@ -135,7 +147,7 @@ LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128)
 @dataclasses.dataclass(frozen=True)
 class Campaign:
     """A grid of trainings: every task x variant x seed, ``timesteps`` each, evaluated every ``eval_freq`` steps
-    over ``eval_episodes`` deterministic episodes."""
+    over ``eval_episodes`` episodes (deterministic, except in the protocols of ``STOCHASTIC_EVALUATION``)."""
 
     protocol: str
     tasks: tuple[str, ...]
@@ -211,6 +223,10 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-seeds5-9": Campaign("paper", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5, 10)), 1_000_000),
     # the learned probe-state fingerprint in the same protocol, once the Table-1 grid is done
     "table1-fingerprint": Campaign("paper", TABLE1_TASKS, ("fingerprint-e2e",), tuple(range(5)), 1_000_000),
+    # Table 1 as the authors' code trains (2M steps on every task, Ant too), ahead of the grids above that still run
+    "table1-authors": Campaign("authors", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5)), 2_000_000),
+    # its pilot: one task and seed, to check that this protocol's PPO lands near the paper's before the grid runs
+    "table1-authors-pilot": Campaign("authors", ("Hopper-v5",), ("ppo", "opr-e2e"), (0,), 2_000_000),
     # the local-generalization diagnostic (paper Fig. 3b / 8) where grid (a)'s direction differs from the paper's
     "table1-local-generalization": Campaign(
         "paper", ("Walker2d-v5", "Hopper-v5"), ("opr-e2e+local-generalization",), tuple(range(3)), 1_000_000
@@ -229,11 +245,11 @@ CAMPAIGNS: dict[str, Campaign] = {
 
 # ---------------------------------------------------------------------------------------------- one training
 class CurveCallback(BaseCallback):
-    """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` deterministic episodes (SB3's
-    ``evaluate_policy``), records the training's CPU and wall-clock seconds so far (evaluations and checkpoints apart),
-    and reports the mean return to the Optuna trial, with a heartbeat. With a ``checkpoint`` folder, it saves the model,
-    its history and its own state there at the first iteration boundary after every ``checkpoint_freq`` env steps;
-    ``state`` is such a saved state, to go on from."""
+    """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` episodes (SB3's ``evaluate_policy``;
+    deterministic actions unless ``deterministic=False``), records the training's CPU and wall-clock seconds so far
+    (evaluations and checkpoints apart), and reports the mean return to the Optuna trial, with a heartbeat. With a
+    ``checkpoint`` folder, it saves the model, its history and its own state there at the first iteration boundary
+    after every ``checkpoint_freq`` env steps; ``state`` is such a saved state, to go on from."""
 
     def __init__(
         self,
@@ -244,8 +260,10 @@ class CurveCallback(BaseCallback):
         checkpoint: pathlib.Path | None = None,
         checkpoint_freq: int = 0,
         state: dict[str, Any] | None = None,
+        deterministic: bool = True,
     ):
         super().__init__()
+        self.deterministic = deterministic
         self.eval_env, self.trial, self.eval_freq, self.n_eval_episodes = eval_env, trial, eval_freq, n_eval_episodes
         self.checkpoint, self.checkpoint_freq = checkpoint, checkpoint_freq
         state = state or {}
@@ -281,7 +299,9 @@ class CurveCallback(BaseCallback):
             return True
         train_cpu, train_wall = self.training_time()
         with self.apart():
-            returns, _ = evaluate_policy(self.model, self.eval_env, self.n_eval_episodes, return_episode_rewards=True)
+            returns, _ = evaluate_policy(
+                self.model, self.eval_env, self.n_eval_episodes, deterministic=self.deterministic, return_episode_rewards=True
+            )
         returns = np.asarray(returns, dtype=float)
         point = (self.num_timesteps, float(returns.mean()), float(returns.std()), train_cpu, train_wall)
         for key, value in zip(self.curve, point):
@@ -349,13 +369,17 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     if campaign.protocol == "zoo":
         return train_through_the_zoo(campaign, task, variant, seed, trial)
     th.set_num_threads(1)
-    env = make_vec_env(task, n_envs=1, seed=seed)
-    eval_env = make_vec_env(task, n_envs=1, seed=seed + EVAL_SEED_OFFSET)
+    make_env = ENV_MAKERS.get(campaign.protocol, functools.partial(make_vec_env, n_envs=1))
+    env = make_env(task, seed=seed)
+    eval_env = make_env(task, seed=seed + EVAL_SEED_OFFSET)
     with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)
         model, state = resumed or (make_model(campaign.protocol, variant, env, seed), {})
-    callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq, state)
+    deterministic = campaign.protocol not in STOCHASTIC_EVALUATION
+    callback = CurveCallback(
+        eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq, state, deterministic
+    )
     callbacks: list[BaseCallback] = [callback]
     logged = MemoryOutput()
     if variant in LOCAL_GENERALIZATION:

@@ -24,8 +24,8 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
     the history: the history holds up to ``history_max_policies`` records and their samples.
 
     Parameters not listed are SB3 A2C's (:class:`~stable_baselines3.A2C`); the PeVFA parameters (``representation``
-    to ``flush_denormal``) are PPOPeVFA's (:class:`~sb3_pevfa.PPOPeVFA`). ``fast_path`` batches the critic's values after
-    each rollout; A2C's own update is used on both paths. A2CPeVFA keeps the paper's history schedule by default
+    to ``critic_minibatches``) are PPOPeVFA's (:class:`~sb3_pevfa.PPOPeVFA`). ``fast_path`` batches the critic's values
+    after each rollout; A2C's own update is used on both paths. A2CPeVFA keeps the paper's history schedule by default
     (``history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True``):
     its update is one gradient step per rollout, so PPOPeVFA's cheaper schedule does not apply to it.
     """
@@ -78,6 +78,10 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
         rollout_encoder_gradient: bool = True,
         fast_path: bool = True,
         flush_denormal: bool = True,
+        rollout_episodes: int | None = None,
+        bootstrap_truncated: bool = True,
+        train_on_clipped_actions: bool = False,
+        critic_minibatches: str = "sb3",
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
         seed: int | None = None,

@@ -34,7 +34,7 @@ from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch.nn import functional as F
 
-from sb3_pevfa.pevfa import fast_path
+from sb3_pevfa.pevfa import episodes, fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments, with_saved_critic
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
@@ -94,6 +94,10 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             self.rollout_buffer_kwargs = {**self.rollout_buffer_kwargs, "value_target_lambda": self.value_target_lambda}
         # a fresh model spells its critic out (pevfa_policy_kwargs); a loaded one without it is of the earlier stream
         self.policy_kwargs = with_saved_critic(self.policy_kwargs)
+        if self.rollout_episodes is not None and self.n_envs != 1:
+            raise ValueError(f"rollout_episodes collects whole episodes of one env, got n_envs={self.n_envs}")
+        if self.train_on_clipped_actions and not isinstance(self.action_space, spaces.Box):
+            raise ValueError(f"train_on_clipped_actions needs a Box action space, got {self.action_space}")
         rollout_size = self.n_steps * self.n_envs
         if self.history_train_freq > 0 and self.history_buffer_size <= rollout_size:
             raise ValueError(
@@ -198,6 +202,8 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         for group in self.policy.optimizer.param_groups:
             if group.get("name") == "critic":
                 group["lr"] = critic_lr
+            elif "lr_scale" in group:  # e.g. the log-std's (log_std_lr_scale): the actor's rate, scaled
+                group["lr"] = group["lr"] * group["lr_scale"]
 
     # ------------------------------------------------------------------ rollout: record, act, keep the samples
     def record_behaviour_policy(self) -> int:
@@ -292,10 +298,20 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
 
     def _train_on_history(self) -> list[float]:
         """Extra critic updates on the samples of historical policies (Algorithm 2, line 8)."""
-        if self.history_train_freq == 0 or self.num_timesteps < self.history_learning_starts:
+        if self.history_train_freq == 0:
             return []
-        self._history_credit += self.n_steps * self.n_envs
-        n_updates, self._history_credit = divmod(self._history_credit, self.history_train_freq)
+        if self.rollout_episodes is not None:  # the authors' count, at each episode's end
+            lengths = episodes.episode_lengths(self.rollout_buffer.episode_starts)
+            n_updates = int(
+                episodes.historical_updates(
+                    lengths, self.num_timesteps, self.history_train_freq, self.history_learning_starts
+                ).sum()
+            )
+        elif self.num_timesteps < self.history_learning_starts:
+            return []
+        else:
+            self._history_credit += self.n_steps * self.n_envs
+            n_updates, self._history_credit = divmod(self._history_credit, self.history_train_freq)
         current = self.history.latest_policy_id
         fields = self.policy.representation.fields
         losses = []
@@ -357,10 +373,17 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         observations = fast_path.flat_observations(self.rollout_buffer, self.device, env_major=False)
         returns = th.as_tensor(self.rollout_buffer.returns.reshape(-1), device=self.device)
         n_epochs, batch_size = self._rollout_critic_schedule()
+        n = len(returns)
+        if self.critic_minibatches == "even":  # the authors': N // (N // batch_size) each, the remainder left out
+            n_batches = max(n // batch_size, 1)
+            batch_size = n // n_batches
+            stop = n_batches * batch_size
+        else:
+            stop = n
         losses = []
         for _ in range(n_epochs):
-            indices = np.random.permutation(len(returns))
-            for start in range(0, len(returns), batch_size):
+            indices = np.random.permutation(n)
+            for start in range(0, stop, batch_size):
                 index = indices[start : start + batch_size]
                 batch = rows(observations, index)
                 loss = F.mse_loss(self.policy.predict_values(batch).flatten(), returns[index])

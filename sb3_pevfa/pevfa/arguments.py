@@ -17,6 +17,9 @@ HISTORY_TARGETS = ("rollout", "recomputed")
 #: Valid values of ``history_normalization``: under ``VecNormalize``, the history in today's statistics, or as its
 #: rollout saw it (stale once the statistics move; what PeVFA did before 0.1.0, kept as an ablation)
 HISTORY_NORMALIZATIONS = ("current", "rollout")
+#: Valid values of ``critic_minibatches``: SB3's (``batch_size`` each, the last one shorter), or the authors' (N // (N //
+#: batch_size) samples each, the remainder left out of the epoch)
+CRITIC_MINIBATCHES = ("sb3", "even")
 #: The PeVFA arguments of every PeVFA algorithm's constructor (documented there).
 PEVFA_ARGUMENTS = (
     "representation",
@@ -40,6 +43,10 @@ PEVFA_ARGUMENTS = (
     "rollout_encoder_gradient",
     "fast_path",
     "flush_denormal",
+    "rollout_episodes",
+    "bootstrap_truncated",
+    "train_on_clipped_actions",
+    "critic_minibatches",
 )
 #: The paper's schedule of the historical critic updates (App. F.1: 64 uniform samples per 10 environment steps) and
 #: its end-to-end encoder, which PPOPeVFA's defaults trade for a cheaper one: ``PPOPeVFA(..., **PAPER_SCHEDULE)``
@@ -118,7 +125,8 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
     k = arguments["history_batch_policies"]
     if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0):
         raise ValueError(f"history_batch_policies must be None (uniform samples, the paper's) or a positive int, got {k!r}")
-    for name in ("fast_path", "flush_denormal"):
+    _check_rollout_options(arguments)
+    for name in ("fast_path", "flush_denormal", "bootstrap_truncated", "train_on_clipped_actions"):
         if not isinstance(arguments[name], (bool, np.bool_)):
             raise TypeError(f"{name} must be a bool, got {arguments[name]!r}")
     gradient = arguments["rollout_encoder_gradient"]
@@ -130,3 +138,22 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
     lam = arguments["value_target_lambda"]
     if lam is not None and (not isinstance(lam, (int, float)) or not 0.0 <= lam <= 1.0):
         raise ValueError(f"value_target_lambda must be in [0, 1] or None, got {lam!r}")
+
+
+def _check_rollout_options(arguments: dict[str, Any]) -> None:
+    """``rollout_episodes``, ``critic_minibatches``, and the options that shape the fast path's rollouts."""
+    episodes = arguments["rollout_episodes"]
+    if episodes is not None and (not isinstance(episodes, (int, np.integer)) or isinstance(episodes, bool) or episodes <= 0):
+        raise ValueError(f"rollout_episodes must be None (rollouts of n_steps) or a positive int, got {episodes!r}")
+    if arguments["critic_minibatches"] not in CRITIC_MINIBATCHES:
+        raise ValueError(
+            f"Unknown critic_minibatches {arguments['critic_minibatches']!r}, valid choices: {CRITIC_MINIBATCHES}"
+        )
+    rollout_options = {
+        "rollout_episodes": episodes is not None,
+        "bootstrap_truncated=False": arguments["bootstrap_truncated"] is False,
+        "train_on_clipped_actions": arguments["train_on_clipped_actions"] is True,
+    }
+    needs_fast_path = [name for name, used in rollout_options.items() if used]
+    if needs_fast_path and arguments["fast_path"] is False:
+        raise ValueError(f"{needs_fast_path} shape the rollouts of the fast path: set fast_path=True")

@@ -21,6 +21,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_pevfa.pevfa.episodes import resize
 from sb3_pevfa.pevfa.records import batch_size, rows, stack_observations
 
 #: Observations per batched critic pass (bounds the memory of image rollouts)
@@ -87,6 +88,10 @@ def collect_rollouts(
     last observation come from one batched ``predict_values`` pass each, the log-probabilities of the rollout's
     actions from one batched ``get_distribution(...).log_prob`` pass (:func:`log_probabilities`).
 
+    The model's rollout options shape it: ``rollout_episodes`` (iterations of whole episodes, one env:
+    :mod:`~sb3_pevfa.pevfa.episodes`), ``bootstrap_truncated`` (False: an episode cut by a time limit ends as a
+    terminal one, no bootstrap) and ``train_on_clipped_actions`` (the buffer keeps the actions the env received).
+
     Saves, measured (``docs/notes/scripts/fast_path.py``, CPU time of whole rollouts, median of 5, one torch thread):
     PPOPeVFA's 2048-step rollouts 23 % on Hopper-v5 (1.33 -> 1.03 ms per step) and 29 % on CartPole-v1
     (0.94 -> 0.67); A2CPeVFA's 5-step rollouts 3 % on Hopper-v5 and 11 % on CartPole-v1.
@@ -94,14 +99,19 @@ def collect_rollouts(
     assert model._last_obs is not None, "No previous observation was provided"
     policy = model.policy
     policy.set_training_mode(False)
-    n_steps = 0
+    n_steps = n_episodes = 0
+    if getattr(model, "rollout_episodes", None) is not None:
+        rollout_buffer.buffer_size = n_rollout_steps  # the last rollout's size, cut to what it collected
     rollout_buffer.reset()
     if model.use_sde:
         policy.reset_noise(env.num_envs)
     callback.on_rollout_start()
     no_values = th.zeros(env.num_envs)
     truncated: list[tuple[int, int, np.ndarray | dict]] = []  # (buffer position, env index, terminal observation)
-    while n_steps < n_rollout_steps:
+    complete = False
+    while not complete:
+        if rollout_buffer.full:  # a rollout of whole episodes running past n_steps: room for another n_steps
+            resize(rollout_buffer, rollout_buffer.buffer_size + n_rollout_steps)
         if model.use_sde and model.sde_sample_freq > 0 and n_steps % model.sde_sample_freq == 0:
             policy.reset_noise(env.num_envs)
         with th.no_grad():
@@ -127,24 +137,48 @@ def collect_rollouts(
         for idx, done in enumerate(dones):
             if done and infos[idx].get("terminal_observation") is not None and infos[idx].get("TimeLimit.truncated", False):
                 truncated.append((rollout_buffer.pos, idx, infos[idx]["terminal_observation"]))
-        rollout_buffer.add(model._last_obs, actions, rewards, model._last_episode_starts, no_values, no_values)  # type: ignore[arg-type]
+        stored = clipped_actions if getattr(model, "train_on_clipped_actions", False) else actions
+        rollout_buffer.add(model._last_obs, stored, rewards, model._last_episode_starts, no_values, no_values)  # type: ignore[arg-type]
         model._last_obs = new_obs  # type: ignore[assignment]
         model._last_episode_starts = dones
-
-    observations = flat_observations(rollout_buffer, model.device, env_major=False)
-    values = predict_values(policy, observations)
-    rollout_buffer.values[:] = values.cpu().numpy().reshape(rollout_buffer.values.shape)
-    log_probs = log_probabilities(policy, observations, rollout_buffer.actions.reshape(-1, rollout_buffer.action_dim))
-    rollout_buffer.log_probs[:] = log_probs.cpu().numpy().reshape(rollout_buffer.log_probs.shape)
-    if truncated:  # bootstrap the truncated episodes with the value of their last observation (SB3 #633)
-        terminal_values = predict_values(
-            policy, obs_as_tensor(stack_observations([obs for *_, obs in truncated]), model.device)
-        )
-        for (pos, idx, _), value in zip(truncated, terminal_values.cpu().numpy()):
-            rollout_buffer.rewards[pos, idx] += model.gamma * value
+        n_episodes += int(dones[0])
+        complete = _rollout_complete(model, n_steps, n_rollout_steps, n_episodes, dones)
+    if rollout_buffer.pos < rollout_buffer.buffer_size:
+        resize(rollout_buffer, rollout_buffer.pos)
+    _evaluate_rollout(model, rollout_buffer, truncated)
     with th.no_grad():
         values = policy.predict_values(obs_as_tensor(new_obs, model.device))  # type: ignore[arg-type]
     rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
     callback.update_locals(locals())
     callback.on_rollout_end()
     return True
+
+
+def _rollout_complete(
+    model: OnPolicyAlgorithm, n_steps: int, n_rollout_steps: int, n_episodes: int, dones: np.ndarray
+) -> bool:
+    """Whether the rollout ends with this step: after ``n_rollout_steps`` (SB3's), or with ``rollout_episodes``, at the
+    first episode end after that many episodes or ``n_rollout_steps`` steps."""
+    episodes = getattr(model, "rollout_episodes", None)
+    if episodes is None:
+        return n_steps >= n_rollout_steps
+    return bool(dones[0]) and (n_episodes >= episodes or n_steps >= n_rollout_steps)
+
+
+def _evaluate_rollout(
+    model: OnPolicyAlgorithm, rollout_buffer: RolloutBuffer, truncated: list[tuple[int, int, np.ndarray | dict]]
+) -> None:
+    """The rollout's values and log-probabilities in batched passes, and the bootstraps of the episodes a time limit
+    cut (SB3 #633; none with ``bootstrap_truncated=False``)."""
+    policy = model.policy
+    observations = flat_observations(rollout_buffer, model.device, env_major=False)
+    values = predict_values(policy, observations)
+    rollout_buffer.values[:] = values.cpu().numpy().reshape(rollout_buffer.values.shape)
+    log_probs = log_probabilities(policy, observations, rollout_buffer.actions.reshape(-1, rollout_buffer.action_dim))
+    rollout_buffer.log_probs[:] = log_probs.cpu().numpy().reshape(rollout_buffer.log_probs.shape)
+    if truncated and getattr(model, "bootstrap_truncated", True):
+        terminal_values = predict_values(
+            policy, obs_as_tensor(stack_observations([obs for *_, obs in truncated]), model.device)
+        )
+        for (pos, idx, _), value in zip(truncated, terminal_values.cpu().numpy()):
+            rollout_buffer.rewards[pos, idx] += model.gamma * value

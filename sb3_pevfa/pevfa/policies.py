@@ -22,6 +22,9 @@ from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, rows, state_dim
 from sb3_pevfa.pevfa.representations import PolicyRepresentation, make_representation
 
+#: Valid values of ``weight_init`` (None: PyTorch's default, or SB3's orthogonal one with ``ortho_init``)
+WEIGHT_INITS = (None, "normal_fan_in")
+
 
 def _check_objectives(objectives: tuple[str, ...], objective_kwargs: dict[str, dict[str, Any]]) -> None:
     if not isinstance(objective_kwargs, dict) or not all(isinstance(v, dict) for v in objective_kwargs.values()):
@@ -65,6 +68,13 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
     :param representation_objectives: Extra encoder objectives besides the value loss: any of ``cl``, ``aux``
     :param objective_kwargs: Settings per objective, e.g. ``{"cl": {"batch_policies": 16}}``
         (see :mod:`sb3_pevfa.pevfa.objectives`)
+    :param mean_activation_fn: Activation of the Gaussian's mean (e.g. ``nn.Tanh``: the authors' code); None: linear
+        (SB3's). Box action spaces without gSDE
+    :param weight_init: ``"normal_fan_in"``: every linear layer of the policy (actor, critic, encoder, objectives)
+        N(0, 1/fan_in), biases 0 (the authors' code); None: PyTorch's, or SB3's orthogonal one (``ortho_init``)
+    :param log_std_lr_scale: The log-std's learning rate over the actor's (its own parameter group). The authors'
+        log-variance, a sum of 13 trainable rows - 1, moves under Adam as one log-std at 6.5x the rate
+        (``tests/test_authors_protocol.py`` shows the equivalence)
 
     Without ``optimizer_kwargs``, Adam runs SB3's settings (``eps=1e-5``) with ``fused=True``; other torch optimizers
     that take ``foreach`` (A2C's RMSprop) get ``foreach=True`` unless ``foreach`` or ``fused`` is given.
@@ -89,8 +99,22 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         chi_normalization: str = CRITIC_DEFAULTS["chi_normalization"],
         representation_objectives: tuple[str, ...] | list[str] = (),
         objective_kwargs: dict[str, dict[str, Any]] | None = None,
+        mean_activation_fn: type[nn.Module] | None = None,
+        weight_init: str | None = None,
+        log_std_lr_scale: float = 1.0,
         **kwargs: Any,
     ):
+        if weight_init not in WEIGHT_INITS:
+            raise ValueError(f"Unknown weight_init {weight_init!r}, valid choices: {WEIGHT_INITS}")
+        if weight_init is not None and kwargs.get("ortho_init", True):
+            raise ValueError(f"weight_init={weight_init!r} replaces SB3's orthogonal initialization: pass ortho_init=False")
+        if not isinstance(log_std_lr_scale, (int, float)) or not np.isfinite(log_std_lr_scale) or log_std_lr_scale <= 0:
+            raise ValueError(f"log_std_lr_scale must be a positive finite float, got {log_std_lr_scale!r}")
+        if mean_activation_fn is not None and not (isinstance(action_space, spaces.Box) and not kwargs.get("use_sde")):
+            raise ValueError("mean_activation_fn needs a Box action space without gSDE (a Gaussian's mean to squash)")
+        self.mean_activation_fn = mean_activation_fn
+        self.weight_init = weight_init
+        self.log_std_lr_scale = float(log_std_lr_scale)
         optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
         if kwargs.get("optimizer_kwargs") is None and optimizer_class is th.optim.Adam:
             # SB3's Adam settings (eps=1e-5) with the fused kernel: one call per step instead of a Python loop over
@@ -139,6 +163,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
 
     def _build(self, lr_schedule: Schedule) -> None:
         super()._build(lr_schedule)
+        self.mean_activation = nn.Identity() if self.mean_activation_fn is None else self.mean_activation_fn()
         self.layout = ActorLayout.from_policy(self)
         self.representation: PolicyRepresentation = make_representation(
             self.representation_name,
@@ -189,16 +214,25 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         }
         for name, tensor in behaviour.items():
             self.register_buffer(name, tensor, persistent=tensor.numel() > 0)
+        if self.weight_init == "normal_fan_in":
+            for module in self.modules():
+                if isinstance(module, nn.Linear):
+                    nn.init.normal_(module.weight, std=module.in_features**-0.5)
+                    nn.init.zeros_(module.bias)
         excluded = {id(p) for p in [*self.critic_parameters(), *self.objectives.parameters()]}
-        actor_params = [p for p in self.parameters() if id(p) not in excluded]
-        self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
-            [
-                {"params": actor_params, "name": "actor"},
-                {"params": list(self.critic_parameters()), "name": "critic"},
-            ],
-            lr=lr_schedule(1),
-            **self.optimizer_kwargs,
-        )
+        log_std = getattr(self, "log_std", None)
+        own_log_std_group = self.log_std_lr_scale != 1.0 and isinstance(log_std, nn.Parameter)
+        if own_log_std_group:
+            excluded.add(id(log_std))
+        groups = [
+            {"params": [p for p in self.parameters() if id(p) not in excluded], "name": "actor"},
+            {"params": list(self.critic_parameters()), "name": "critic"},
+        ]
+        if own_log_std_group:
+            groups.append({"params": [log_std], "name": "log_std", "lr_scale": self.log_std_lr_scale})
+        for group in groups:
+            group["lr"] = lr_schedule(1) * group.get("lr_scale", 1.0)
+        self.optimizer = self.optimizer_class(groups, lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
         # One optimizer per objective: the shared encoder and the objective's own modules, at the objective's rate.
         for name, objective in self.objectives.items():
             params = [*self.representation.parameters(), *(p for p in objective.parameters() if p.requires_grad)]
@@ -229,8 +263,17 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             chi_normalization=self.chi_normalization,
             representation_objectives=self.representation_objectives,
             objective_kwargs=self.objective_kwargs,
+            mean_activation_fn=self.mean_activation_fn,
+            weight_init=self.weight_init,
+            log_std_lr_scale=self.log_std_lr_scale,
         )
         return data
+
+    def _get_action_dist_from_latent(self, latent_pi: th.Tensor):
+        """SB3's, the Gaussian's mean through ``mean_activation_fn`` where one is set."""
+        if self.mean_activation_fn is None:
+            return super()._get_action_dist_from_latent(latent_pi)
+        return self.action_dist.proba_distribution(self.mean_activation(self.action_net(latent_pi)), self.log_std)
 
     # ------------------------------------------------------------------ the critic V(s, chi)
     def _latents(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:

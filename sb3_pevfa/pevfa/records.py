@@ -59,6 +59,8 @@ class ActorLayout:
     activation_fn: type[nn.Module] | None = nn.Tanh
     #: gSDE's ``use_expln`` (how its log-std becomes a standard deviation)
     use_expln: bool = False
+    #: The activation of the Gaussian's mean (the policy's ``mean_activation_fn``); None: linear
+    mean_activation_fn: type[nn.Module] | None = None
 
     @property
     def log_std_numel(self) -> int:
@@ -101,6 +103,7 @@ class ActorLayout:
             log_std_shape=tuple(log_std.shape) if isinstance(log_std, th.Tensor) else (),
             activation_fn=cls.activation(policy),
             use_expln=bool(getattr(policy.action_dist, "use_expln", False)),
+            mean_activation_fn=getattr(policy, "mean_activation_fn", None),
         )
 
     def flatten(self, policy: ActorCriticPolicy) -> th.Tensor:
@@ -127,6 +130,7 @@ class ActorLayout:
         :param params: Flat parameters of ``P`` actors, ``(P, n_params)``
         :param inputs: The actor's inputs (the features extractor's outputs), ``(K, in)`` for all or ``(P, K, in)``
         :return: ``policy_net``'s output (gSDE's latent) ``(P, K, hidden)`` and ``action_net``'s ``(P, K, out)``
+            (through ``mean_activation_fn`` where the policy has one)
         """
         if self.activation_fn is None:
             raise TypeError("Evaluating actors needs a policy_net of [nn.Linear, activation] pairs (SB3's MlpExtractor)")
@@ -135,7 +139,10 @@ class ActorLayout:
         latent = inputs
         for layer in rows[:-1]:
             latent = activation(_batched_linear(latent, layer))
-        return latent.expand(len(params), *latent.shape[-2:]), _batched_linear(latent, rows[-1])
+        outputs = _batched_linear(latent, rows[-1])
+        if self.mean_activation_fn is not None:
+            outputs = self.mean_activation_fn()(outputs)
+        return latent.expand(len(params), *latent.shape[-2:]), outputs
 
 
 def _batched_linear(inputs: th.Tensor, rows: th.Tensor) -> th.Tensor:

@@ -72,6 +72,17 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
     :param fast_path: Critic values batched after each rollout, the actor alone acting
         (:mod:`sb3_pevfa.pevfa.fast_path`): SB3's math and random draws, equal up to float round-off; False runs
         SB3's own ``collect_rollouts``. Both paths train with SB3's ``PPO.train``
+    :param rollout_episodes: None: rollouts of ``n_steps`` (SB3's); k: rollouts of whole episodes of one env, ended at
+        the first episode end after k episodes or ``n_steps`` steps (the authors' iterations,
+        :mod:`sb3_pevfa.pevfa.episodes`); the historical updates then run per episode, as the authors count them
+    :param bootstrap_truncated: SB3's bootstrap of an episode cut by a time limit with the value of its last
+        observation; False: it ends as a terminal one (the authors', with a time feature in the observation)
+    :param train_on_clipped_actions: The actor update's log-probabilities are of the actions the env received (clipped
+        to the Box), as the authors' code stores them; False: of the sampled actions (SB3's)
+    :param critic_minibatches: The critic's minibatches in the ``critic_first`` order: ``"sb3"`` (``batch_size`` each,
+        the last one shorter) or ``"even"`` (N // (N // batch_size) samples each, the remainder left out: the authors')
+    :param actor_batch_size: Minibatch size of the actor update in the ``critic_first`` order: None (``batch_size``),
+        an int, or ``"full"`` (the whole rollout: ``n_epochs`` full-batch steps, the authors')
     :param flush_denormal: Denormal numbers flushed to zero during the update with one torch thread
         (``torch.set_flush_denormal``, the thread's setting restored after; :mod:`sb3_pevfa.pevfa.denormals`): Adam's
         moments of ReLU units without gradient decay through the denormal range, where the CPU is tens of times
@@ -129,6 +140,11 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         rollout_encoder_gradient: bool | None = None,
         fast_path: bool = True,
         flush_denormal: bool = True,
+        rollout_episodes: int | None = None,
+        bootstrap_truncated: bool = True,
+        train_on_clipped_actions: bool = False,
+        critic_minibatches: str = "sb3",
+        actor_batch_size: int | str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
         seed: int | None = None,
@@ -166,8 +182,26 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
                 _init_setup_model=False,
             )
         self._init_pevfa(env, pevfa)
+        valid_int = isinstance(actor_batch_size, int) and not isinstance(actor_batch_size, bool) and actor_batch_size > 1
+        if not (actor_batch_size is None or actor_batch_size == "full" or valid_int):
+            raise ValueError(f"actor_batch_size must be None, an int > 1 or 'full', got {actor_batch_size!r}")
+        if actor_batch_size is not None and update_order != "critic_first":
+            raise ValueError("actor_batch_size is the actor's own minibatch size of update_order='critic_first'")
+        self.actor_batch_size = actor_batch_size
         if _init_setup_model:
             self._setup_model()
 
     def _rollout_critic_schedule(self) -> tuple[int, int]:
         return self.n_epochs, self.batch_size
+
+    def _train_actor_critic(self) -> None:
+        """SB3's ``PPO.train``, in minibatches of ``actor_batch_size`` where it is set."""
+        if self.actor_batch_size is None:
+            return super()._train_actor_critic()
+        batch_size = self.batch_size
+        rollout_size = self.rollout_buffer.buffer_size * self.rollout_buffer.n_envs
+        self.batch_size = rollout_size if self.actor_batch_size == "full" else self.actor_batch_size
+        try:
+            super()._train_actor_critic()
+        finally:
+            self.batch_size = batch_size
