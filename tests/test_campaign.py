@@ -507,3 +507,28 @@ def test_a_zoo_campaign_trains_through_rl_zoo3_on_one_hyperparameter_file():
         campaign.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/none.yml")
     # the file's content belongs to the stored definition: an edited file is another protocol
     assert tiny.definition()["settings"]["ppo conf"] and "conf" not in campaign.CAMPAIGNS["table1"].definition()
+
+
+def test_an_authors_protocol_trial_trains_on_their_env_evaluates_sampled_actions_and_resumes(tmp_path, monkeypatch):
+    tiny = campaign.Campaign("authors", (TASK,), ("opr-e2e",), (0,), 6000, 2000, 2)
+    seen = []
+    evaluate = campaign.evaluate_policy
+
+    def recorded(model, env, *args, deterministic=True, **kwargs):
+        seen.append((deterministic, env.observation_space.shape, model.num_timesteps))
+        if model.num_timesteps == 4000 and not (tmp_path / "stopped").exists():
+            (tmp_path / "stopped").touch()
+            raise KeyboardInterrupt  # the worker ends after its checkpoint at the first iteration past 2000 steps
+        return evaluate(model, env, *args, deterministic=deterministic, **kwargs)
+
+    monkeypatch.setattr(campaign, "evaluate_policy", recorded)
+    folder = tmp_path / "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
+    state = json.loads((folder / "state.json").read_text())
+    assert 2000 <= state["timesteps"] < 4000  # iterations of whole episodes: the checkpoint at an episode's end
+    result = campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
+    # InvertedPendulum's 4 state variables and the time feature; every evaluation samples actions
+    assert {(deterministic, shape) for deterministic, shape, _ in seen} == {(False, (5,))}
+    assert result["curve"]["steps"] == [2000, 4000, 6000] and result["resumed_from"] == state["timesteps"]
+    assert result["timesteps"] >= 6000 and "rollout_episodes" in result["arguments"]

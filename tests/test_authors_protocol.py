@@ -1,0 +1,302 @@
+"""The authors' protocol (sb3_pevfa.protocols.authors_protocol): each mechanic against their code's arithmetic."""
+
+import copy
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from torch import nn
+
+from sb3_pevfa import A2CPeVFA, PPOPeVFA
+from sb3_pevfa.envs.time_feature import ElapsedTimeFeatureWrapper
+from sb3_pevfa.pevfa.episodes import episode_lengths, historical_updates
+from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, authors_env, authors_protocol, make_authors_env
+
+#: The authors' protocol at a tiny scale: 5 episodes or 200 steps an iteration, historical updates after 100 steps
+TINY = dict(n_steps=200, batch_size=32, history_learning_starts=100, history_buffer_size=5_000)
+
+
+class Episodes(gym.Env):
+    """Episodes of the given lengths in turn (terminated), reward 1 a step, a one-dimensional state and action."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, lengths=(30,)):
+        self.lengths, self.episode, self.t = tuple(lengths), -1, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.episode, self.t = self.episode + 1, 0
+        return np.array([0.0], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        length = self.lengths[self.episode % len(self.lengths)]
+        return np.array([self.t / 10], np.float32), 1.0, self.t >= length, False, {}
+
+
+def _model(lengths=(30,), algorithm="ppo_pevfa", max_episode_steps=None, **overrides) -> PPOPeVFA:
+    def make():
+        env = Episodes(lengths)
+        return gym.wrappers.TimeLimit(env, max_episode_steps) if max_episode_steps else env
+
+    env = make_vec_env(make, n_envs=1, seed=0)
+    return PPOPeVFA("MlpPolicy", env, **authors_protocol(algorithm, **{**TINY, **overrides}), seed=0)
+
+
+def _rollout(model: PPOPeVFA) -> None:
+    _, callback = model._setup_learn(10_000, reset_num_timesteps=False)
+    model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+
+
+@pytest.mark.parametrize(
+    ("lengths", "expected"),
+    [
+        ((30,), [150, 150]),  # 5 episodes first
+        ((70,), [210, 210]),  # 200 steps first: the episode under way is finished (3 x 70)
+        ((100,), [200, 200]),  # 2 x 100 = 200 reaches the step count at an episode end
+        ((100, 20), [220, 240]),
+        ((199, 3), [202, 202]),  # 199 + 3 >= 200 after the second episode
+    ],
+)
+def test_iterations_end_after_five_episodes_or_at_the_episode_end_past_n_steps(lengths, expected):
+    model = _model(lengths, algorithm="ppo")
+    sizes = []
+    for _ in expected:
+        _rollout(model)
+        sizes.append(model.rollout_buffer.buffer_size)
+        assert model.rollout_buffer.full and len(model.rollout_buffer.observations) == sizes[-1]
+        assert model._last_episode_starts[0]  # every rollout ends with an episode
+    assert sizes == expected and model.num_timesteps == sum(expected)
+
+
+def _authors_updates(episode_lengths_in_order: list[int], train_freq: int, starts: int) -> list[int]:
+    """Their loop (mujoco_run_ppo_pevf_e2e_opr_Sep.py): at each episode's end, once the step counter is past
+    ``starts``, ``counter // freq - (counter - episode_steps) // freq`` updates."""
+    counter, updates = 0, []
+    for length in episode_lengths_in_order:
+        counter += length
+        updates.append(counter // train_freq - (counter - length) // train_freq if counter > starts else 0)
+    return updates
+
+
+def test_historical_updates_are_counted_per_episode_as_the_authors_count_them():
+    lengths = [37, 3, 50, 10, 7, 1000, 9, 11]
+    all_updates = _authors_updates(lengths, 10, 100)
+    assert all_updates[:5] == [0] * 5 and all_updates[5] == 110 - 10  # none for the episode ending at exactly 100
+    # in rollouts of whole episodes, any split of the episodes gives the same counts
+    first, second = lengths[:4], lengths[4:]
+    np.testing.assert_array_equal(historical_updates(np.array(first), sum(first), 10, 100), [0, 0, 0, 0])
+    np.testing.assert_array_equal(historical_updates(np.array(second), sum(lengths), 10, 100), all_updates[4:])
+    np.testing.assert_array_equal(
+        historical_updates(np.array(lengths), sum(lengths), 10, 99), _authors_updates(lengths, 10, 99)
+    )
+    starts = np.zeros(len(lengths) and sum(second), bool)
+    starts[np.cumsum([0, *second[:-1]])] = True
+    np.testing.assert_array_equal(episode_lengths(starts), second)
+
+
+def test_the_model_runs_that_many_historical_updates_each_iteration():
+    # the first iteration (139 steps) ends before the updates start: their memory would still be empty
+    model = _model((30, 17, 45), history_learning_starts=150)
+    steps, episodes, calls = [], [], []
+    step = model._critic_step
+    model._critic_step = lambda loss, what: calls.append(what) or step(loss, what)  # type: ignore[method-assign]
+    for _ in range(4):
+        calls.clear()
+        _rollout(model)
+        lengths = episode_lengths(model.rollout_buffer.episode_starts)
+        episodes.extend(lengths)
+        steps.append(model.num_timesteps)
+        model.train()
+        expected = sum(_authors_updates(episodes, 10, 150)[len(episodes) - len(lengths) :])
+        assert calls.count("historical value loss") == expected
+    assert sum(_authors_updates(episodes, 10, 150)) > 0
+
+
+def test_monte_carlo_targets_and_gae_end_at_every_episode_end_and_at_the_cap():
+    # episodes of 40 steps capped at 25 by a time limit: truncated, not bootstrapped
+    model = _model((40,), algorithm="ppo", max_episode_steps=25, gamma=0.9, gae_lambda=0.8)
+    _rollout(model)
+    buffer, gamma = model.rollout_buffer, 0.9
+    assert buffer.buffer_size == 125 and np.all(buffer.rewards == 1.0)  # no bootstrap added to the rewards
+    mc = np.array([(1 - gamma ** (25 - t)) / (1 - gamma) for t in range(25)] * 5, np.float32)
+    np.testing.assert_allclose(buffer.returns[:, 0], mc, rtol=1e-5)
+    model._recompute_advantages()  # the critic-first order's GAE, from the same critic
+    values = buffer.values[:, 0]
+    next_values = np.append(values[1:], 0.0).reshape(5, 25)
+    next_values[:, -1] = 0.0  # V = 0 after each episode's last step
+    deltas = 1.0 + gamma * next_values.reshape(-1) - values
+    expected = np.zeros(125, np.float32)
+    for episode in range(5):
+        gae = 0.0
+        for t in reversed(range(25)):
+            gae = deltas[episode * 25 + t] + gamma * 0.8 * gae
+            expected[episode * 25 + t] = gae
+    np.testing.assert_allclose(buffer.advantages[:, 0], expected, rtol=1e-4, atol=1e-5)
+
+
+def test_the_actor_update_is_ten_full_batch_adam_steps():
+    model = _model((30, 17, 45), algorithm="ppo")
+    _rollout(model)
+    buffer = model.rollout_buffer
+    observations = th.as_tensor(buffer.observations[:, 0])
+    actions = th.as_tensor(buffer.actions[:, 0])
+    old_log_prob = th.as_tensor(buffer.log_probs[:, 0])
+    advantages = th.as_tensor(buffer.advantages[:, 0])
+    # by hand: advantages normalized over the whole batch, the clipped surrogate, 10 Adam steps on all of it
+    policy = copy.deepcopy(model.policy)
+    actor = [p for p in policy.optimizer.param_groups[0]["params"]]
+    optimizer = th.optim.Adam([{"params": actor, "lr": 1e-4}, {"params": [policy.log_std], "lr": 6.5e-4}], eps=1e-8)
+    normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    for _ in range(10):
+        log_prob = policy.get_distribution(observations).log_prob(actions)
+        ratio = th.exp(log_prob - old_log_prob)
+        loss = -th.min(normalized * ratio, normalized * th.clamp(ratio, 0.8, 1.2)).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with model.policy.critic_frozen():
+        model._train_actor_critic()
+    assert model._n_updates == 10  # 10 epochs of one batch
+    for ours, theirs in zip(model.policy.layout.flatten(model.policy), policy.layout.flatten(policy)):
+        assert abs(float(ours) - float(theirs)) <= 1e-6
+    assert not th.equal(model.policy.layout.flatten(model.policy), model.policy.layout.flatten(_model((30,), "ppo").policy))
+
+
+def test_the_log_variance_of_13_rows_is_one_log_std_at_6_5_times_the_rate():
+    model = _model(algorithm="ppo")
+    policy = model.policy
+    group = next(g for g in policy.optimizer.param_groups if g.get("name") == "log_std")
+    assert group["params"] == [policy.log_std] and group["lr"] == pytest.approx(6.5e-4)
+    rows = th.zeros(13, 1, requires_grad=True)  # theirs: log-var = sum of the rows - 1, Adam at the actor's rate
+    theirs = th.optim.Adam([rows], lr=1e-4, eps=1e-8)
+    generator = th.Generator().manual_seed(0)
+    for _ in range(200):
+        actions, mean = th.randn(64, 1, generator=generator) * 2, th.randn(64, 1, generator=generator)
+        for log_std, optimizer in ((policy.log_std, policy.optimizer), ((rows.sum(0) - 1) / 2, theirs)):
+            loss = -th.distributions.Normal(mean, log_std.exp()).log_prob(actions).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        assert abs(policy.log_std.item() - ((rows.sum() - 1) / 2).item()) < 1e-6
+    assert policy.log_std.item() > -0.5 + 0.05  # it moved
+
+
+def test_weights_are_normal_with_variance_one_over_fan_in_and_biases_zero():
+    model = _model(policy_kwargs=dict(net_arch=dict(pi=[400, 400], vf=[400])))
+    linears = [m for m in model.policy.modules() if isinstance(m, nn.Linear)]
+    assert len(linears) > 8  # actor, critic streams and head, the OPR encoder's row MLPs
+    for layer in linears:
+        assert th.all(layer.bias == 0)
+        if layer.weight.numel() >= 10_000:
+            std = layer.weight.std().item() * layer.in_features**0.5
+            assert 0.97 < std < 1.03 and abs(layer.weight.mean().item()) < 0.01 / layer.in_features**0.5 * 10
+    assert th.all(model.policy.log_std == -0.5)
+
+
+def test_the_mean_is_tanh_activated_and_the_buffer_keeps_the_clipped_actions():
+    model = _model((30,), algorithm="ppo")
+    policy = model.policy
+    observations = th.linspace(-50, 50, 11).reshape(-1, 1)
+    mean = policy.get_distribution(observations).distribution.mean
+    latent = policy.mlp_extractor.forward_actor(observations)
+    np.testing.assert_allclose(mean.detach(), th.tanh(policy.action_net(latent)).detach(), atol=1e-7)
+    params = policy.layout.flatten(policy)[None]
+    np.testing.assert_allclose(policy.layout.evaluate(params, observations)[1][0].detach(), mean.detach(), atol=1e-6)
+    _rollout(model)
+    actions = model.rollout_buffer.actions
+    assert actions.min() >= -1.0 and actions.max() <= 1.0 and np.any(np.abs(actions) == 1.0)
+    log_probs = policy.get_distribution(th.as_tensor(model.rollout_buffer.observations[:, 0])).log_prob(
+        th.as_tensor(actions[:, 0])
+    )
+    np.testing.assert_allclose(model.rollout_buffer.log_probs[:, 0], log_probs.detach(), atol=1e-5)
+
+
+def test_the_critic_takes_even_minibatches_the_remainder_left_out():
+    counts = {}
+    for rule in ("even", "sb3"):
+        model = _model((30,), algorithm="ppo", critic_minibatches=rule, history_train_freq=0)
+        sizes = []
+        step = model._critic_step
+        model._critic_step = lambda loss, what, sizes=sizes, step=step: sizes.append(what) or step(loss, what)  # type: ignore
+        _rollout(model)  # 150 samples: the authors' one batch of 150; SB3's 32 x 4 and 22
+        model._train_critic_on_rollout()
+        counts[rule] = len(sizes)
+    assert counts == {"even": 10 * 4, "sb3": 10 * 5}
+    model = _model((30,), algorithm="ppo", batch_size=128, critic_minibatches="even")
+    captured = []
+    predict = model.policy.predict_values
+    model.policy.predict_values = lambda obs, *a: captured.append(len(obs)) or predict(obs, *a)  # type: ignore
+    _rollout(model)
+    captured.clear()
+    model._train_critic_on_rollout()
+    assert captured == [150] * 10  # 150 // (150 // 128) = 150
+
+
+def test_the_time_feature_is_the_elapsed_fraction_and_episodes_end_at_1000_steps():
+    env = authors_env("Pendulum-v1")  # 200 steps of its own: the authors' cap of 1000 replaces it
+    observation, _ = env.reset(seed=0)
+    assert observation[-1] == 0.0 and env.observation_space.shape == (4,)
+    for t in range(1, 1001):
+        observation, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert observation[-1] == pytest.approx(t / 1000) and truncated == (t == 1000) and not terminated
+    wrapped = ElapsedTimeFeatureWrapper(gym.make("Pendulum-v1"), test_mode=True)
+    assert wrapped.reset(seed=0)[0][-1] == 0.0 and wrapped.step(wrapped.action_space.sample())[0][-1] == 0.0
+    # actions in [-1, 1] scaled to the bounds (Pendulum's torque: [-2, 2])
+    assert np.all(env.action_space.high == 1.0) and make_authors_env("Pendulum-v1", seed=0).num_envs == 1
+
+
+def test_authors_protocol_builds_their_networks_and_keeps_them_through_save_and_load(tmp_path):
+    model = _model((30,))
+    assert model.rollout_episodes == 5 and model.actor_batch_size == "full" and model.critic_minibatches == "even"
+    assert model.bootstrap_truncated is False and model.train_on_clipped_actions is True
+    assert model.policy.mean_activation_fn is nn.Tanh and model.policy.weight_init == "normal_fan_in"
+    assert model.policy.optimizer.defaults["eps"] == 1e-8
+    model.learn(400)
+    model.save(tmp_path / "model")
+    loaded = PPOPeVFA.load(tmp_path / "model", env=model.env)
+    for name in (
+        "rollout_episodes",
+        "actor_batch_size",
+        "critic_minibatches",
+        "bootstrap_truncated",
+        "train_on_clipped_actions",
+    ):
+        assert getattr(loaded, name) == getattr(model, name)
+    assert loaded.policy.mean_activation_fn is nn.Tanh and loaded.policy.log_std_lr_scale == 6.5
+    assert th.equal(loaded.policy.layout.flatten(loaded.policy), model.policy.layout.flatten(model.policy))
+    assert any("log-std" in line for line in AUTHORS_DEVIATIONS)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(rollout_episodes=0), "rollout_episodes must be None"),
+        (dict(rollout_episodes=5, fast_path=False), "set fast_path=True"),
+        (dict(bootstrap_truncated=False, fast_path=False), "set fast_path=True"),
+        (dict(critic_minibatches="odd"), "valid choices: ('sb3', 'even')"),
+        (dict(actor_batch_size="all", update_order="critic_first"), "actor_batch_size must be"),
+        (dict(actor_batch_size="full"), "update_order='critic_first'"),
+        (dict(policy_kwargs=dict(weight_init="xavier", ortho_init=False)), "valid choices: (None, 'normal_fan_in')"),
+        (dict(policy_kwargs=dict(weight_init="normal_fan_in")), "pass ortho_init=False"),
+        (dict(policy_kwargs=dict(log_std_lr_scale=0.0)), "log_std_lr_scale must be"),
+    ],
+)
+def test_bad_options_are_refused_at_construction(kwargs, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)").replace("'", "'")):
+        PPOPeVFA("MlpPolicy", "Pendulum-v1", **kwargs)
+
+
+def test_options_that_need_one_env_or_a_box_say_so():
+    with pytest.raises(ValueError, match="n_envs=2"):
+        PPOPeVFA("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2), rollout_episodes=5)
+    with pytest.raises(ValueError, match="needs a Box action space"):
+        A2CPeVFA("MlpPolicy", "CartPole-v1", train_on_clipped_actions=True)
+    with pytest.raises(ValueError, match="mean_activation_fn needs a Box"):
+        PPOPeVFA("MlpPolicy", "CartPole-v1", policy_kwargs=dict(mean_activation_fn=nn.Tanh))
+    with pytest.raises(ValueError, match="Unknown algorithm 'sac' of the authors' protocol"):
+        authors_protocol("sac")
