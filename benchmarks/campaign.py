@@ -225,7 +225,9 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-fingerprint": Campaign("paper", TABLE1_TASKS, ("fingerprint-e2e",), tuple(range(5)), 1_000_000),
     # Table 1 as the authors' code trains (2M steps on every task, Ant too), ahead of the grids above that still run
     "table1-authors": Campaign("authors", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5)), 2_000_000),
-    # its pilot: one task and seed, to check that this protocol's PPO lands near the paper's before the grid runs
+    # then the paper's Ran PR control in the same protocol: a fixed random code per policy in place of OPR
+    "table1-authors-random": Campaign("authors", TABLE1_TASKS, ("random",), tuple(range(5)), 2_000_000),
+    # the pilot of table1-authors: one task and seed, to check that its PPO lands near the paper's before the grid runs
     "table1-authors-pilot": Campaign("authors", ("Hopper-v5",), ("ppo", "opr-e2e"), (0,), 2_000_000),
     # the local-generalization diagnostic (paper Fig. 3b / 8) where grid (a)'s direction differs from the paper's
     "table1-local-generalization": Campaign(

@@ -141,13 +141,42 @@ def test_a_failed_load_leaves_the_history_as_it_was(tmp_path):
     with np.load(tmp_path / "good.npz") as archive:  # the right signature, but an array missing: found while reading
         np.savez(tmp_path / "incomplete.npz", **{k: archive[k] for k in archive.files if k != "sample/targets"})
     before = history.samples()
-    cases = [(tmp_path / "other", ValueError), (tmp_path / "broken.npz", Exception), (tmp_path / "incomplete.npz", KeyError)]
-    for path, error in cases:
-        with pytest.raises(error):
+    for path in (tmp_path / "other", tmp_path / "broken.npz", tmp_path / "incomplete.npz"):
+        with pytest.raises(ValueError):
             history.load(path)
         assert history.policy_ids == [0, 1, 2]
         np.testing.assert_array_equal(history.samples()[0], before[0])
         np.testing.assert_array_equal(history.samples()[1], before[1])
+
+
+def test_a_file_that_is_not_a_history_is_one_clear_error(tmp_path):
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, representation="opr", seed=0)
+    _fill(history, 2, 10)
+    history.save(tmp_path / "good")
+    good = (tmp_path / "good.npz").read_bytes()
+    files = {
+        "empty.npz": b"",
+        "truncated.npz": good[: len(good) // 2],
+        "text.npz": b"a history? no, some text\n",
+        "object.pkl": b"\x80\x04\x95\x05\x00\x00\x00\x00\x00\x00\x00K\x01.",
+    }
+    for name, content in files.items():
+        (tmp_path / name).write_bytes(content)
+    np.savez(tmp_path / "foreign.npz", weights=np.zeros(3))
+    np.savez(tmp_path / "bad_meta.npz", meta=np.array("not json"))
+    for name in [*files, "foreign.npz", "bad_meta.npz"]:
+        with pytest.raises(ValueError) as raised:
+            history.load(tmp_path / name)
+        message = str(raised.value)
+        assert message.startswith(f"{tmp_path / name} is not a policy history file: save_history()"), message
+        assert "allow_pickle" not in message and raised.value.__cause__ is None and raised.value.__suppress_context__
+        assert history.policy_ids == [0, 1]
+    with np.load(tmp_path / "good.npz") as archive:
+        np.savez(tmp_path / "incomplete.npz", **{k: archive[k] for k in archive.files if k != "record/params"})
+    with pytest.raises(ValueError, match=r"incomplete.npz is incomplete: it has no 'record/params'"):
+        history.load(tmp_path / "incomplete.npz")
+    with pytest.raises(FileNotFoundError):
+        history.load(tmp_path / "missing.npz")
 
 
 def test_save_is_atomic_and_takes_file_objects(tmp_path, monkeypatch):

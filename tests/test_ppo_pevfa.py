@@ -1068,3 +1068,37 @@ def test_checkpoints_save_and_load_the_history_of_their_moment(tmp_path):
     with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128"):
         checkpoint.load_history(tmp_path / "replay_buffer.pkl")
     assert checkpoint.history.policy_ids == model.history.policy_ids
+
+
+def test_aux_without_state_action_pairs_is_refused_at_construction():
+    images = make_vec_env(lambda: FakeImageEnv(screen_height=36, screen_width=36, n_channels=1), n_envs=1)
+    with pytest.raises(ValueError, match="objective 'aux' predicts actions from state-action pairs, which image"):
+        PPOPeVFA("CnnPolicy", images, representation_objectives=("aux",))
+    with pytest.raises(ValueError, match="objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0"):
+        PPOPeVFA("MlpPolicy", "CartPole-v1", representation_objectives="aux", n_state_action_pairs=0)
+    PPOPeVFA("CnnPolicy", images, representation_objectives=("cl",))  # the contrastive objective needs no pairs
+
+
+@pytest.mark.parametrize("history_train_freq", [16, 0])
+def test_a_model_loaded_without_its_history_says_so_once_when_it_learns(tmp_path, history_train_freq):
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **{**FAST, "history_train_freq": history_train_freq})
+    model.learn(128)
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
+    loaded = PPOPeVFA.load(tmp_path / "model", env=make_vec_env("CartPole-v1", n_envs=1, seed=1))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loaded.learn(64, reset_num_timesteps=False)
+        loaded.learn(64, reset_num_timesteps=False)
+    empty = [w for w in caught if "its policy history is empty" in str(w.message)]
+    if history_train_freq == 0:  # nothing reads the history: nothing to say
+        assert not empty
+        return
+    assert len(empty) == 1 and "model.load_history(path)" in str(empty[0].message)
+    assert empty[0].filename == __file__  # the warning points at the user's learn()
+    again = PPOPeVFA.load(tmp_path / "model", env=make_vec_env("CartPole-v1", n_envs=1, seed=1))
+    again.load_history(tmp_path / "history")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        again.learn(64, reset_num_timesteps=False)
+    assert not [w for w in caught if "its policy history is empty" in str(w.message)]

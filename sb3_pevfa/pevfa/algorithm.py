@@ -75,6 +75,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._history_credit = 0
         self._objective_credit: dict[str, int] = {}
         self._rollout_episode_returns: list[float] = []
+        self._warned_empty_history = False
 
     def _setup_model(self) -> None:
         if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):
@@ -185,6 +186,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             "_shared_params",
             "_raw_rollout",
             "_last_raw_obs",
+            "_warned_empty_history",
         ]
 
     @property
@@ -244,6 +246,15 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         return complete
 
     def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
+        reads_history = self.history_train_freq > 0 or len(self.policy.objectives) > 0
+        if self.num_timesteps > 0 and not self.history.n_policies and reads_history and not self._warned_empty_history:
+            self._warned_empty_history = True
+            warnings.warn(
+                f"This model has trained {self.num_timesteps} steps but its policy history is empty (a model file "
+                "holds no history): its historical critic updates start again from nothing. Call "
+                "model.load_history(path) with the history saved beside it (save_history) to go on from it",
+                stacklevel=5,  # the user's learn() (through PeVFAAlgorithm, PPO and OnPolicyAlgorithm.learn)
+            )
         last_obs = self._last_obs
         result = super()._setup_learn(total_timesteps, *args, **kwargs)
         if self.history.renormalize and (self._last_obs is not last_obs or self._last_raw_obs is None):

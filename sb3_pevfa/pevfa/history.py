@@ -5,6 +5,8 @@ import io
 import json
 import os
 import pathlib
+import zipfile
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
@@ -655,35 +657,42 @@ class PolicyHistory:
             path = pathlib.Path(path)
             if not path.exists() and not path.suffix:
                 path = path.with_suffix(".npz")
-        with np.load(path, allow_pickle=False) as archive:
-            meta = json.loads(str(archive["meta"]))
-            version = meta.get("format_version")
-            if version not in _READABLE_VERSIONS:
-                raise ValueError(
-                    f"History file {path} has format version {version}, this sb3-pevfa reads versions {_READABLE_VERSIONS}"
+        meta, arrays = _read_archive(path)
+        version = meta.get("format_version")
+        if version not in _READABLE_VERSIONS:
+            raise ValueError(
+                f"History file {path} has format version {version}, this sb3-pevfa reads versions {_READABLE_VERSIONS}"
+            )
+        found_signature = meta["signature"]
+        mismatches = {
+            key: (found_signature.get(key), value)
+            for key, value in self.signature.items()
+            # format 1 files hold fewer keys: those they have are checked; a history without a layout takes any
+            if (version > 1 or key in found_signature or key in _SIGNATURE_DEFAULTS)
+            and not (key.startswith("actor_") and self.layout is None)
+            and found_signature.get(key, _SIGNATURE_DEFAULTS.get(key)) != value
+        }
+        if mismatches:
+            details = ", ".join(
+                f"{key}: file has {found_signature.get(key, _SIGNATURE_DEFAULTS.get(key))!r}, model expects {wanted!r}"
+                for key, (_, wanted) in mismatches.items()
+            )
+            hint = ""
+            if "renormalize" in mismatches and not found_signature.get("renormalize", False):
+                hint = (
+                    "; a history recorded as its rollouts saw a VecNormalize env loads into a model built or "
+                    "loaded with history_normalization='rollout'"
                 )
-            found_signature = meta["signature"]
-            mismatches = {
-                key: (found_signature.get(key), value)
-                for key, value in self.signature.items()
-                # format 1 files hold fewer keys: those they have are checked; a history without a layout takes any
-                if (version > 1 or key in found_signature or key in _SIGNATURE_DEFAULTS)
-                and not (key.startswith("actor_") and self.layout is None)
-                and found_signature.get(key, _SIGNATURE_DEFAULTS.get(key)) != value
-            }
-            if mismatches:
-                details = ", ".join(
-                    f"{key}: file has {found_signature.get(key, _SIGNATURE_DEFAULTS.get(key))!r}, model expects {wanted!r}"
-                    for key, (_, wanted) in mismatches.items()
-                )
-                hint = ""
-                if "renormalize" in mismatches and not found_signature.get("renormalize", False):
-                    hint = (
-                        "; a history recorded as its rollouts saw a VecNormalize env loads into a model built or "
-                        "loaded with history_normalization='rollout'"
-                    )
-                raise ValueError(f"History file {path} does not match this model ({details}){hint}")
-            arrays = {name: archive[name] for name in archive.files if name != "meta"}
+            raise ValueError(f"History file {path} does not match this model ({details}){hint}")
+        try:
+            loaded = self._from_arrays(meta, arrays, version)
+        except KeyError as error:
+            raise ValueError(f"History file {path} is incomplete: it has no {error} (a truncated or edited file?)") from None
+        self.__dict__.update(loaded.__dict__)
+        return self
+
+    def _from_arrays(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], version: int) -> "PolicyHistory":
+        """A copy of this history (same spaces and bounds) holding the records and samples of a file's arrays."""
         prefix, info_key = ("policy", "policy_info") if version == 1 else ("record", "record_info")
         loaded = copy.copy(self)  # same spaces and bounds, its own storage: this history stays intact until the end
         loaded.rng = np.random.default_rng()
@@ -712,5 +721,23 @@ class PolicyHistory:
                 loaded.add_samples(observations, arrays["sample/targets"][mask], policy_id, **transitions)
         loaded._next_id = meta["next_id"]
         loaded.rng.bit_generator.state = meta["rng_state"]
-        self.__dict__.update(loaded.__dict__)
-        return self
+        return loaded
+
+
+def _read_archive(path: pathlib.Path | io.IOBase) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The meta data and arrays of a history file; anything else (empty, truncated, text, another archive) is a
+    ValueError that names the file. Nothing is ever unpickled."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            if not hasattr(archive, "files") or "meta" not in archive.files:
+                raise KeyError("meta")
+            meta = json.loads(str(archive["meta"]))
+            if not isinstance(meta, dict):
+                raise TypeError("meta")
+            return meta, {name: archive[name] for name in archive.files if name != "meta"}
+    except (EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile, zlib.error) as error:
+        raise ValueError(
+            f"{path} is not a policy history file: save_history() / PolicyHistory.save() write a numpy .npz archive "
+            f"of the records and samples with a 'meta' entry, and this file could not be read as one "
+            f"({type(error).__name__})"
+        ) from None

@@ -39,6 +39,33 @@ def _check_objectives(objectives: tuple[str, ...], objective_kwargs: dict[str, d
         raise ValueError(f"objective_kwargs given for {unused}, which are not in representation_objectives={objectives}")
 
 
+def _check_aux(observation_space: spaces.Space, n_state_action_pairs: int) -> None:
+    if has_image(observation_space):
+        raise ValueError(
+            "objective 'aux' predicts actions from state-action pairs, which image observations do not record: "
+            "use objective 'cl', or none"
+        )
+    if n_state_action_pairs == 0:
+        raise ValueError("objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0")
+
+
+def _check_actor_options(
+    action_space: spaces.Space,
+    mean_activation_fn: type[nn.Module] | None,
+    weight_init: str | None,
+    log_std_lr_scale: float,
+    kwargs: dict[str, Any],
+) -> None:
+    if weight_init not in WEIGHT_INITS:
+        raise ValueError(f"Unknown weight_init {weight_init!r}, valid choices: {WEIGHT_INITS}")
+    if weight_init is not None and kwargs.get("ortho_init", True):
+        raise ValueError(f"weight_init={weight_init!r} replaces SB3's orthogonal initialization: pass ortho_init=False")
+    if not isinstance(log_std_lr_scale, (int, float)) or not np.isfinite(log_std_lr_scale) or log_std_lr_scale <= 0:
+        raise ValueError(f"log_std_lr_scale must be a positive finite float, got {log_std_lr_scale!r}")
+    if mean_activation_fn is not None and not (isinstance(action_space, spaces.Box) and not kwargs.get("use_sde")):
+        raise ValueError("mean_activation_fn needs a Box action space without gSDE (a Gaussian's mean to squash)")
+
+
 class PeVFAActorCriticPolicy(ActorCriticPolicy):
     """SB3's :class:`~stable_baselines3.common.policies.ActorCriticPolicy` with a policy-extended critic.
 
@@ -104,14 +131,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         log_std_lr_scale: float = 1.0,
         **kwargs: Any,
     ):
-        if weight_init not in WEIGHT_INITS:
-            raise ValueError(f"Unknown weight_init {weight_init!r}, valid choices: {WEIGHT_INITS}")
-        if weight_init is not None and kwargs.get("ortho_init", True):
-            raise ValueError(f"weight_init={weight_init!r} replaces SB3's orthogonal initialization: pass ortho_init=False")
-        if not isinstance(log_std_lr_scale, (int, float)) or not np.isfinite(log_std_lr_scale) or log_std_lr_scale <= 0:
-            raise ValueError(f"log_std_lr_scale must be a positive finite float, got {log_std_lr_scale!r}")
-        if mean_activation_fn is not None and not (isinstance(action_space, spaces.Box) and not kwargs.get("use_sde")):
-            raise ValueError("mean_activation_fn needs a Box action space without gSDE (a Gaussian's mean to squash)")
+        _check_actor_options(action_space, mean_activation_fn, weight_init, log_std_lr_scale, kwargs)
         self.mean_activation_fn = mean_activation_fn
         self.weight_init = weight_init
         self.log_std_lr_scale = float(log_std_lr_scale)
@@ -143,6 +163,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             raise TypeError(f"objective_kwargs must be a dict, got {type(objective_kwargs).__name__}")
         if isinstance(representation_objectives, str):  # "cl" means ("cl",), not ("c", "l")
             representation_objectives = (representation_objectives,)
+        if "aux" in representation_objectives:
+            _check_aux(observation_space, n_state_action_pairs)
         self.representation_kwargs = dict(representation_kwargs or {})
         self.n_state_action_pairs = int(n_state_action_pairs)
         self.critic_embedding_arch = list(critic_embedding_arch)
