@@ -4,7 +4,13 @@ and by iteration, from a saved model and its history (or a fresh short run).
     python examples/embedding_maps.py --model runs/example/model.zip --history runs/example/history.npz
     python examples/embedding_maps.py --env CartPole-v1 --timesteps 50000      # train, then map
     python examples/embedding_maps.py --tiny
+
+Needs the diagnostics extra: pip install -e ".[diagnostics]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("diagnostics", "examples/embedding_maps.py")
 
 import argparse
 import pathlib

@@ -4,7 +4,13 @@ Walker, evaluated on the unseen 20 % (MSE and rank correlation), with raw parame
     python examples/global_generalization.py --n-policies 2000 --n-trajectories 20 --epochs 5   # a few CPU minutes
     python examples/global_generalization.py --n-policies 20000 --n-trajectories 50             # the paper's scale
     python examples/global_generalization.py --tiny
+
+Needs the diagnostics extra: pip install -e ".[diagnostics]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("diagnostics", "examples/global_generalization.py")
 
 import argparse
 import json

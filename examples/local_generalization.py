@@ -3,7 +3,13 @@ side, error against the returns the current policy collected, before and after e
 
     python examples/local_generalization.py --env InvertedPendulum-v5 --timesteps 100000
     python examples/local_generalization.py --tiny          # seconds, for CI
+
+Needs the diagnostics extra: pip install -e ".[diagnostics]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("diagnostics", "examples/local_generalization.py")
 
 import argparse
 import pathlib

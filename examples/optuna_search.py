@@ -18,7 +18,13 @@ entry's whole ``policy_kwargs``);
 rl-zoo3's ``TrialEvalCallback`` evaluates and prunes, its samplers and pruners are chosen by name and its storages
 by URL. The study is then drawn under ``<out>/plots/``: interactive plotly pages (``optuna.visualization``, HTML)
 and the same plots as PNGs (``optuna.visualization.matplotlib``). rl-zoo3's own flags can follow ``--``.
+
+Needs the zoo extra: pip install -e ".[zoo]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("zoo", "examples/optuna_search.py")
 
 import argparse
 import pathlib

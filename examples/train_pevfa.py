@@ -21,17 +21,19 @@ def main() -> None:
     parser.add_argument("--representation", default="opr", choices=REPRESENTATIONS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/example"))
-    parser.add_argument("--tiny", action="store_true", help="1k steps (a smoke test)")
+    parser.add_argument("--tiny", action="store_true", help="1k steps in 256-step rollouts (a smoke test)")
     args = parser.parse_args()
     th.set_num_threads(1)
+    kwargs = {}
     if args.tiny:
-        args.timesteps = 1024
+        args.timesteps, kwargs = 1024, dict(n_steps=256, history_learning_starts=0)
 
     env = make_vec_env(args.env, n_envs=1, seed=args.seed)
-    model = PPOPeVFA("MlpPolicy", env, representation=args.representation, seed=args.seed, verbose=1)
+    model = PPOPeVFA("MlpPolicy", env, representation=args.representation, seed=args.seed, verbose=1, **kwargs)
     model.learn(args.timesteps)
     mean, std = evaluate_policy(model, make_vec_env(args.env, n_envs=1, seed=args.seed + 1), n_eval_episodes=10)
-    print(f"{args.env} PPOPeVFA({args.representation}) after {args.timesteps} steps: return {mean:.1f} +- {std:.1f}")
+    # PPO trains whole rollouts of n_steps: the steps taken, not the ones asked for
+    print(f"{args.env} PPOPeVFA({args.representation}) after {model.num_timesteps} steps: return {mean:.1f} +- {std:.1f}")
     print(model.history)
     model.save(args.out / "model")
     model.save_history(args.out / "history")

@@ -3,7 +3,13 @@ their measured returns (Spearman rank correlation).
 
     python examples/zero_shot_values.py --env CartPole-v1 --timesteps 50000 --checkpoints 10
     python examples/zero_shot_values.py --tiny
+
+Needs the diagnostics extra: pip install -e ".[diagnostics]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("diagnostics", "examples/zero_shot_values.py")
 
 import argparse
 import pathlib
@@ -60,7 +66,12 @@ def main() -> None:
     ax.scatter(measured, predicted)
     for path, x, y in zip(paths, measured, predicted):
         ax.annotate(path.stem.split("_")[1], (x, y), fontsize=7)
-    ax.set(xlabel="measured return", ylabel="PeVFA predicted value (start states)", title=f"{args.env}: Spearman {rho:.2f}")
+    title = f"{args.env}: Spearman {rho:.2f}"
+    if args.tiny:  # 1k steps: the checkpoints barely differ, and so would any ranking of them
+        title += " (smoke run: too short to rank)"
+        print("a smoke run (--tiny): too short for the checkpoints' ranking to mean anything")
+    ax.set(xlabel="measured return", ylabel="PeVFA predicted value (start states)", title=title)
+    ax.ticklabel_format(useOffset=False)  # the values themselves on the axes, not an offset
     fig.tight_layout()
     fig.savefig(args.out / "zero_shot_values.png", dpi=100)
     print(f"figure: {args.out / 'zero_shot_values.png'}")

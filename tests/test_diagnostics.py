@@ -10,6 +10,7 @@ from stable_baselines3.common.logger import configure
 from sb3_pevfa import PolicyRecord, PPOPeVFA
 from sb3_pevfa.diagnostics import (
     LocalGeneralizationCallback,
+    embedding_maps,
     plot_embedding_maps,
     plot_local_generalization,
     policy_embeddings,
@@ -117,7 +118,7 @@ def test_read_scalars_from_tensorboard(tmp_path):
 
 
 @pytest.mark.parametrize("representation", ["opr", "fingerprint"])
-def test_embedding_maps(tmp_path, representation):
+def test_embedding_maps(tmp_path, representation, monkeypatch):
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation=representation, **FAST).learn(640)
     ids, embeddings = policy_embeddings(model)
     assert ids.tolist() == model.history.policy_ids
@@ -127,7 +128,14 @@ def test_embedding_maps(tmp_path, representation):
     np.testing.assert_allclose(embeddings, th.cat(one_by_one).numpy(), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(policy_embeddings(model, batch_size=3)[1], embeddings, rtol=1e-5, atol=1e-6)  # chunked
     assert any("episode_return" in model.history.record_info(int(i)) for i in ids)
+    figures = []
+    save = embedding_maps.save_figure
+    monkeypatch.setattr(embedding_maps, "save_figure", lambda fig, png: figures.append(fig) or save(fig, png))
     assert plot_embedding_maps(model, tmp_path / "maps.png").stat().st_size > 10_000
+    # the last record (the trained policy) has no episode yet: grey, and a legend says why
+    by_return = figures[0].axes[0]
+    assert [t.get_text() for t in by_return.get_legend().get_texts()] == ["no average return recorded"]
+    assert figures[0].axes[1].get_legend() is None  # every policy has an iteration
     with pytest.raises(ValueError, match="none"):
         policy_embeddings(PPOPeVFA("MlpPolicy", "CartPole-v1", representation="none", **FAST).learn(192))
 

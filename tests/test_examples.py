@@ -46,3 +46,51 @@ def test_example_runs_tiny(tmp_path, example):
         drawn = {p.name for p in (tmp_path / "plots").glob("optimization_history.*")}
         assert drawn == {"optimization_history.html", "optimization_history.png"}
     assert list(tmp_path.glob(OUTPUTS[example])), sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*"))[:50]
+    if example == "train_pevfa.py":  # the steps it trained, not the ones asked for
+        assert "after 1024 steps" in result.stdout
+    if example == "zero_shot_values.py":
+        assert "a smoke run (--tiny)" in result.stdout
+    if example == "zoo_commands.sh":  # the training curve is drawn (coloured pixels), not an empty frame
+        for png in tmp_path.glob("plots/training_*.png"):
+            assert _coloured_pixels(png) > 100, png
+
+
+def _coloured_pixels(png: pathlib.Path) -> int:
+    """Pixels of a figure that are neither white, black nor grey (its axes and labels): its curves and points."""
+    import matplotlib.image
+
+    rgb = matplotlib.image.imread(png)[..., :3]
+    return int(((rgb.max(axis=-1) - rgb.min(axis=-1)) > 0.2).sum())
+
+
+#: What needs an extra: the command, the extra, one of its modules to hide
+NEEDS_EXTRA = [
+    (["examples/embedding_maps.py", "--tiny"], "diagnostics", "sklearn"),
+    (["examples/global_generalization.py", "--tiny"], "diagnostics", "scipy"),
+    (["examples/local_generalization.py", "--tiny"], "diagnostics", "matplotlib"),
+    (["examples/zero_shot_values.py", "--tiny"], "diagnostics", "scipy"),
+    (["examples/optuna_search.py", "--tiny"], "zoo", "rl_zoo3"),
+    (["-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
+    (["-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "optuna"),
+    (["-m", "sb3_pevfa.record_video", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
+    (["-c", "import sb3_pevfa.diagnostics"], "diagnostics", "tensorboard"),
+]
+
+
+@pytest.mark.parametrize(("command", "extra", "hidden"), NEEDS_EXTRA)
+def test_without_its_extra_a_command_says_which_to_install(tmp_path, command, extra, hidden):
+    """A module of the extra is hidden (as if not installed): one line naming the extra and its install command."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import sys\n\n\nclass Hide:\n    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name.split('.')[0] == {hidden!r}:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r}')\n\n\nsys.meta_path.insert(0, Hide())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, *command], capture_output=True, text=True, timeout=120, env=env, cwd=ROOT)
+    assert result.returncode == 1
+    install = f'pip install "sb3-pevfa[{extra}]", or pip install -e ".[{extra}]"'
+    assert f"needs the '{extra}' extra (missing: {hidden}): {install}" in result.stderr
+    if command[0] != "-c":  # a script: that line alone; an import in the user's code: a ModuleNotFoundError saying it
+        assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    else:
+        assert "ModuleNotFoundError: sb3_pevfa.diagnostics needs" in result.stderr

@@ -1,4 +1,11 @@
-"""Diagnostics of the paper: local and global value generalization, embedding maps, zero-shot policy values."""
+"""Diagnostics of the paper: local and global value generalization, embedding maps, zero-shot policy values.
+
+They need the ``diagnostics`` extra (``pip install "sb3-pevfa[diagnostics]"``)."""
+
+from sb3_pevfa.extras import require_extra
+
+require_extra("diagnostics", "sb3_pevfa.diagnostics")
+
 
 from sb3_pevfa.diagnostics.embedding_maps import plot_embedding_maps, policy_embeddings
 from sb3_pevfa.diagnostics.global_generalization import plot_global_generalization, run_global_generalization

@@ -57,8 +57,10 @@ def plot_embedding_maps(
         coordinates = embedding_map(embeddings, method, seed)
         for ax, (values, label) in zip(row, ((returns, "average return"), (ids, "iteration (policy id)"))):
             known = np.isfinite(values)
-            ax.scatter(coordinates[~known, 0], coordinates[~known, 1], s=8, c="lightgray")
             points = ax.scatter(coordinates[known, 0], coordinates[known, 1], s=8, c=values[known], cmap="viridis")
             fig.colorbar(points, ax=ax, label=label)
+            if not known.all():  # e.g. a policy whose rollout ended no episode has no return
+                ax.scatter(coordinates[~known, 0], coordinates[~known, 1], s=8, c="lightgray", label=f"no {label} recorded")
+                ax.legend(loc="best", fontsize=8)
             ax.set(title=f"{method.upper()} of {len(ids)} policies, by {label}", xticks=[], yticks=[])
     return save_figure(fig, png)

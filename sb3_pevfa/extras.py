@@ -1,0 +1,48 @@
+"""The optional extras of the package (``pip install "sb3-pevfa[diagnostics]"``): what each one installs, and a clear
+message where one is missing, in place of a bare ``ModuleNotFoundError`` from deep inside an import."""
+
+import importlib.util
+import sys
+
+#: extra -> the modules it installs (the ones this package, its examples and its rl-zoo3 commands import)
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "diagnostics": ("matplotlib", "sklearn", "scipy", "tensorboard"),
+    "zoo": ("rl_zoo3", "sb3_contrib", "optuna", "requests", "seaborn", "pandas", "plotly"),
+    "mujoco": ("mujoco",),
+    "box2d": ("Box2D",),
+}
+
+
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a broken or blocked install counts as missing
+        return False
+
+
+def missing_extra(extra: str, what: str) -> str | None:
+    """The message to show where ``extra`` is not installed (None where it is): what needs it, the missing modules
+    and the command that installs them."""
+    if extra not in EXTRAS:
+        raise ValueError(f"Unknown extra {extra!r}, valid choices: {sorted(EXTRAS)}")
+    missing = [module for module in EXTRAS[extra] if not _installed(module)]
+    if not missing:
+        return None
+    return (
+        f"{what} needs the '{extra}' extra (missing: {', '.join(missing)}): pip install \"sb3-pevfa[{extra}]\", "
+        f'or pip install -e ".[{extra}]" in a clone'
+    )
+
+
+def require_extra(extra: str, what: str) -> None:
+    """Raise ``ModuleNotFoundError`` with :func:`missing_extra`'s message where ``extra`` is not installed."""
+    message = missing_extra(extra, what)
+    if message is not None:
+        raise ModuleNotFoundError(message)
+
+
+def exit_without_extra(extra: str, what: str) -> None:
+    """For scripts: exit with :func:`missing_extra`'s message (one line, no traceback) where ``extra`` is missing."""
+    message = missing_extra(extra, what)
+    if message is not None:
+        sys.exit(message)
