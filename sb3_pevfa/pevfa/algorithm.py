@@ -440,6 +440,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 self._train_actor_critic()
         else:
             self._train_actor_critic()
+        self.policy.clear_embedding_cache()  # the update may have moved the encoder
         self._record_pevfa_logs(history_losses)
         if self.history_targets == "recomputed":
             self.logger.record("pevfa/history_targets_recomputed", recomputed)
@@ -452,12 +453,17 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.logger.record("pevfa/history_samples", self.history.n_samples)
         self.logger.record("pevfa/history_memory_mb", self.history.nbytes / 2**20)
         self.logger.record("pevfa/policy_id", self.history.latest_policy_id)
-        if self.policy.representation.embedding_dim > 0:
+
+    def dump_logs(self, iteration: int = 0) -> None:
+        """SB3's, the embedding's diagnostics of the behaviour policy recorded first: computed only for the rows the
+        logger writes (every ``log_interval`` iterations), not at every update."""
+        if self.policy.representation.embedding_dim > 0 and self.rollout_buffer.full:
             self.policy.set_training_mode(False)
             chi = self.policy.behaviour_embedding()
             self.logger.record("pevfa/embedding_norm", chi.norm().item())
             self.logger.record("pevfa/embedding_saturated_fraction", self.policy.value_net.saturated_fraction(chi))
             self.logger.record("pevfa/value_chi_gradient", self.value_chi_gradient())
+        super().dump_logs(iteration)
 
     def value_chi_gradient(self, n_states: int = 256) -> float:
         """Mean over (up to ``n_states``) states of the rollout of ``||dV(s, chi)/dchi||`` at the behaviour policy's

@@ -452,10 +452,11 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         return state
 
     def set_training_mode(self, mode: bool) -> None:
-        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs)."""
+        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs). A
+        change of mode drops the cached chi (the update that follows, or came before, moves the encoder)."""
         if mode != self.training:
             super().set_training_mode(mode)
-        self.clear_embedding_cache()
+            self.clear_embedding_cache()
 
 
 class PeVFAActorCriticCnnPolicy(PeVFAActorCriticPolicy):

@@ -1,0 +1,108 @@
+"""Speed in rl-zoo3's settings: whole runs of SB3's algorithm and its PeVFA class, alternately in one process.
+
+A setting is a task's rl-zoo3 hyperparameter entry for SB3's algorithm and the package's shipped entry for its PeVFA
+class (``n_envs``, ``normalize``, ``policy_kwargs``... as rl-zoo3 reads them, VecNormalize with the entry's gamma
+as rl-zoo3 builds it; ``--options`` on top of the PeVFA entry); each repeat trains a fresh model of each (seed = the
+repeat) for ``--steps`` env steps, SB3's first, and times its ``learn`` in CPU seconds of this process
+(``time.process_time``) and wall-clock seconds, one torch thread. The ratio is PeVFA's steps per CPU-second over
+SB3's in the same repeat; its median and range over the repeats are reported.
+
+    # rl-zoo3's shipped A2C settings on CartPole-v1 (8 envs, 5-step rollouts): A2C vs A2CPeVFA's shipped entry
+    python benchmarks/speed_zoo.py --setting a2c-cartpole --steps 100000 --repeats 5
+    # rl-zoo3's tuned Hopper-v5 PPO (256x256, n_steps 512, VecNormalize): PPO vs PPOPeVFA's shipped entry
+    python benchmarks/speed_zoo.py --setting ppo-hopper-tuned --steps 60000 --repeats 5
+"""
+
+import argparse
+import json
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+import rl_zoo3
+import torch as th
+import yaml
+from stable_baselines3 import A2C, PPO
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
+from torch import nn
+
+from sb3_pevfa import A2CPeVFA, PPOPeVFA
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ZOO = pathlib.Path(rl_zoo3.__file__).parent / "hyperparams"
+OURS = ROOT / "hyperparams"
+TUNED = ROOT / "benchmarks" / "hyperparams" / "zoo_tuned.yml"  # rl-zoo3 tuned PPO entries, v5 tasks
+#: setting -> the env, SB3's class and its hyperparameter file, the PeVFA class and its file (the package's shipped
+#: entries: what ``python -m sb3_pevfa.train --algo ppo_pevfa|a2c_pevfa`` trains)
+SETTINGS = {
+    "a2c-cartpole": ("CartPole-v1", A2C, ZOO / "a2c.yml", A2CPeVFA, OURS / "a2c_pevfa.yml"),
+    "ppo-hopper-tuned": ("Hopper-v5", PPO, TUNED, PPOPeVFA, OURS / "ppo_pevfa.yml"),
+}
+
+
+def entry_of(path: pathlib.Path, env_id: str) -> dict[str, Any]:
+    """The entry as rl-zoo3 uses it: the algorithm's arguments, and ``n_envs`` / ``normalize`` for the env."""
+    entry = dict(yaml.load(path.read_text(), Loader=yaml.UnsafeLoader)[env_id])  # rl-zoo3's loader (!!float)
+    entry.pop("n_timesteps", None)
+    if isinstance(entry.get("policy_kwargs"), str):
+        entry["policy_kwargs"] = eval(entry["policy_kwargs"], {"nn": nn, "dict": dict})  # as rl-zoo3 does
+    return entry
+
+
+def make_model(algorithm: type, entry: dict[str, Any], env_id: str, seed: int):
+    entry = dict(entry)
+    n_envs, normalize, policy = entry.pop("n_envs", 1), entry.pop("normalize", False), entry.pop("policy")
+    env = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    if normalize:
+        kwargs = normalize if isinstance(normalize, dict) else {}
+        env = VecNormalize(env, **({"gamma": entry["gamma"]} if "gamma" in entry else {}), **kwargs)
+    return algorithm(policy, env, seed=seed, **entry)
+
+
+def timed_run(algorithm: type, entry: dict[str, Any], env_id: str, seed: int, steps: int) -> dict[str, float]:
+    model = make_model(algorithm, entry, env_id, seed)
+    cpu, wall = time.process_time(), time.perf_counter()
+    model.learn(steps)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    return {"steps": model.num_timesteps, "cpu_s": cpu, "wall_s": wall, "steps_per_cpu_s": model.num_timesteps / cpu}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setting", choices=sorted(SETTINGS), required=True)
+    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--options", type=json.loads, default={}, help="PeVFA options beside the entry, as JSON")
+    parser.add_argument("--out", type=pathlib.Path, default=None, help="a JSON file for every run and the summary")
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    env_id, base, base_file, pevfa, pevfa_file = SETTINGS[args.setting]
+    entries = {"base": entry_of(base_file, env_id), "pevfa": {**entry_of(pevfa_file, env_id), **args.options}}
+    runs: dict[str, list[dict[str, float]]] = {"base": [], "pevfa": []}
+    for seed in range(args.repeats):
+        for name, algorithm in (("base", base), ("pevfa", pevfa)):  # A B A B ...
+            runs[name].append(timed_run(algorithm, entries[name], env_id, seed, args.steps))
+            print(f"seed {seed} {algorithm.__name__}: {runs[name][-1]['steps_per_cpu_s']:.0f} steps/CPU-s", flush=True)
+    ratios = np.array([p["steps_per_cpu_s"] / b["steps_per_cpu_s"] for b, p in zip(runs["base"], runs["pevfa"])])
+    wall = np.array([b["wall_s"] / p["wall_s"] for b, p in zip(runs["base"], runs["pevfa"])])
+    summary = {
+        "setting": args.setting, "entries": {k: {n: repr(v) for n, v in e.items()} for k, e in entries.items()},
+        "env": env_id, "steps": args.steps,
+        "base": base.__name__, "pevfa": pevfa.__name__, "runs": runs, "ratio_median": float(np.median(ratios)),
+        "ratio_min": float(ratios.min()), "ratio_max": float(ratios.max()), "wall_ratio_median": float(np.median(wall)),
+    }  # fmt: skip
+    print(
+        f"{args.setting}: {base.__name__} {np.median([r['steps_per_cpu_s'] for r in runs['base']]):.0f}, "
+        f"{pevfa.__name__} {np.median([r['steps_per_cpu_s'] for r in runs['pevfa']]):.0f} steps per CPU-second "
+        f"(medians of {args.repeats}); ratio median {summary['ratio_median']:.2f} [{summary['ratio_min']:.2f}, "
+        f"{summary['ratio_max']:.2f}], wall-clock {summary['wall_ratio_median']:.2f}"
+    )
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()
