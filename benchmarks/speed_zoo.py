@@ -25,6 +25,7 @@ import torch as th
 import yaml
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
@@ -61,12 +62,19 @@ def make_model(algorithm: type, entry: dict[str, Any], env_id: str, seed: int):
     return algorithm(policy, env, seed=seed, **entry)
 
 
-def timed_run(algorithm: type, entry: dict[str, Any], env_id: str, seed: int, steps: int) -> dict[str, float]:
+def timed_run(algorithm: type, entry: dict[str, Any], env_id: str, seed: int, steps: int, episodes: int) -> dict[str, float]:
+    """One run's CPU and wall-clock seconds of ``learn``, and then (untimed) the mean return of ``episodes``
+    deterministic episodes of the trained policy on an env seeded with ``seed + 10000``."""
     model = make_model(algorithm, entry, env_id, seed)
     cpu, wall = time.process_time(), time.perf_counter()
     model.learn(steps)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
-    return {"steps": model.num_timesteps, "cpu_s": cpu, "wall_s": wall, "steps_per_cpu_s": model.num_timesteps / cpu}
+    env = model.get_env()
+    if isinstance(env, VecNormalize):
+        env.training = False  # evaluate in the run's statistics, without moving them
+    returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
+    return {"steps": model.num_timesteps, "cpu_s": cpu, "wall_s": wall, "steps_per_cpu_s": model.num_timesteps / cpu,
+            "final_return": float(np.mean(returns))}  # fmt: skip
 
 
 def main() -> None:
@@ -74,6 +82,7 @@ def main() -> None:
     parser.add_argument("--setting", choices=sorted(SETTINGS), required=True)
     parser.add_argument("--steps", type=int, default=100_000)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--eval-episodes", type=int, default=10, help="deterministic episodes after each run (untimed)")
     parser.add_argument("--options", type=json.loads, default={}, help="PeVFA options beside the entry, as JSON")
     parser.add_argument("--out", type=pathlib.Path, default=None, help="a JSON file for every run and the summary")
     args = parser.parse_args()
@@ -83,8 +92,9 @@ def main() -> None:
     runs: dict[str, list[dict[str, float]]] = {"base": [], "pevfa": []}
     for seed in range(args.repeats):
         for name, algorithm in (("base", base), ("pevfa", pevfa)):  # A B A B ...
-            runs[name].append(timed_run(algorithm, entries[name], env_id, seed, args.steps))
-            print(f"seed {seed} {algorithm.__name__}: {runs[name][-1]['steps_per_cpu_s']:.0f} steps/CPU-s", flush=True)
+            runs[name].append(timed_run(algorithm, entries[name], env_id, seed, args.steps, args.eval_episodes))
+            speed, score = runs[name][-1]["steps_per_cpu_s"], runs[name][-1]["final_return"]
+            print(f"seed {seed} {algorithm.__name__}: {speed:.0f} steps/CPU-s, return {score:.0f}", flush=True)
     ratios = np.array([p["steps_per_cpu_s"] / b["steps_per_cpu_s"] for b, p in zip(runs["base"], runs["pevfa"])])
     wall = np.array([b["wall_s"] / p["wall_s"] for b, p in zip(runs["base"], runs["pevfa"])])
     summary = {
@@ -97,7 +107,11 @@ def main() -> None:
         f"{args.setting}: {base.__name__} {np.median([r['steps_per_cpu_s'] for r in runs['base']]):.0f}, "
         f"{pevfa.__name__} {np.median([r['steps_per_cpu_s'] for r in runs['pevfa']]):.0f} steps per CPU-second "
         f"(medians of {args.repeats}); ratio median {summary['ratio_median']:.2f} [{summary['ratio_min']:.2f}, "
-        f"{summary['ratio_max']:.2f}], wall-clock {summary['wall_ratio_median']:.2f}"
+        f"{summary['ratio_max']:.2f}], wall-clock {summary['wall_ratio_median']:.2f}; final return "
+        + ", ".join(
+            f"{cls.__name__} {np.mean([r['final_return'] for r in runs[n]]):.0f}"
+            for n, cls in (("base", base), ("pevfa", pevfa))
+        )
     )
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

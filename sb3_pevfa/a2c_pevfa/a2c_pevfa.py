@@ -25,9 +25,12 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
 
     Parameters not listed are SB3 A2C's (:class:`~stable_baselines3.A2C`); the PeVFA parameters (``representation``
     to ``critic_minibatches``) are PPOPeVFA's (:class:`~sb3_pevfa.PPOPeVFA`). ``fast_path`` batches the critic's values
-    after each rollout; A2C's own update is used on both paths. A2CPeVFA keeps the paper's history schedule by default
-    (``history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True``):
-    its update is one gradient step per rollout, so PPOPeVFA's cheaper schedule does not apply to it.
+    after each rollout; A2C's own update is used on both paths. A2CPeVFA's default schedule of historical updates is one
+    batch of 256 samples of 8 policies per 200 env steps, the encoder trained by them alone
+    (``rollout_encoder_gradient=None``): A2C updates every few env steps, and the paper's schedule
+    (:data:`~sb3_pevfa.PAPER_SCHEDULE`: 64 samples per 10 steps, the encoder also trained on every rollout) made it
+    about 5x slower than A2C in rl-zoo3's CartPole-v1 settings; this one costs about 1.4x A2C's CPU time there
+    (``benchmarks/speed_zoo.py --setting a2c-cartpole``; docs/notes/2026-12-05-a2c-default-schedule.md).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -68,14 +71,14 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
         value_target_lambda: float | None = None,
         history_buffer_size: int = 200_000,
         history_max_policies: int = 10_000,
-        history_batch_size: int = 64,
-        history_batch_policies: int | None = None,
-        history_train_freq: int = 10,
+        history_batch_size: int = 256,
+        history_batch_policies: int | None = 8,
+        history_train_freq: int = 200,
         history_learning_starts: int = 5_000,
         history_targets: str = "rollout",
         history_target_refresh: int = 1,
         history_normalization: str = "current",
-        rollout_encoder_gradient: bool = True,
+        rollout_encoder_gradient: bool | None = None,
         fast_path: bool = True,
         flush_denormal: bool = True,
         rollout_episodes: int | None = None,

@@ -281,6 +281,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             param.grad = None  # Adam skips it: the actor's outputs, and so the rollout's log-probabilities, stay valid
         th.nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm, foreach=True)
         self.policy.optimizer.step()
+        self.policy.clear_embedding_cache()  # the encoder may have moved
         return value
 
     def _refresh_history_targets(self) -> int:
@@ -364,6 +365,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 loss.backward()
                 optimizer.step()
                 objective.after_step(self.policy.representation)
+                self.policy.clear_embedding_cache()  # the encoder has moved
                 for key, value in values.items():
                     metrics.setdefault(key, []).append(value)
                 metrics[f"{name}_updates"].append(1.0)
@@ -431,7 +433,6 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         history_losses = self._train_on_history()
         for key, values in objective_metrics.items():
             self.logger.record(f"pevfa/{key}", len(values) if key.endswith("_updates") else float(np.mean(values)))
-        self.policy.clear_embedding_cache()  # the encoder has moved: the on-policy update reads chi of its weights now
         if self.update_order == "critic_first":
             critic_losses = self._train_critic_on_rollout()
             self.logger.record("pevfa/critic_value_loss", float(np.mean(critic_losses)))

@@ -181,6 +181,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         #: loss on the rollout leaves the encoder alone); the algorithm's ``rollout_encoder_gradient`` sets it
         self.behaviour_chi_gradient = True
         self._embedding_cache: th.Tensor | None = None
+        self._plain_modules: list[nn.Module] | None = None
         super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -449,14 +450,24 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             elif isinstance(value, th.Tensor) and value.grad_fn is not None:
                 setattr(action_dist, name, value.detach().clone())  # e.g. gSDE's exploration matrices
         state["action_dist"] = action_dist
+        state["_plain_modules"] = None  # listed again on the next change of mode
         return state
 
     def set_training_mode(self, mode: bool) -> None:
-        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs). A
-        change of mode drops the cached chi (the update that follows, or came before, moves the encoder)."""
-        if mode != self.training:
+        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs). The
+        cached chi stays: it is computed in evaluation mode whatever the mode, and every step that moves the encoder
+        drops it (:meth:`clear_embedding_cache`)."""
+        if mode == self.training:
+            return
+        if self._plain_modules is None:  # modules whose train() is nn.Module's: their flags can be set in one pass
+            modules = list(self.modules())
+            plain = all(type(module).train is nn.Module.train for module in modules)
+            self._plain_modules = modules if plain else []
+        if not self._plain_modules:
             super().set_training_mode(mode)
-            self.clear_embedding_cache()
+            return
+        for module in self._plain_modules:  # what nn.Module.train(mode) sets, without its recursion (CPU time per update)
+            module.__dict__["training"] = mode
 
 
 class PeVFAActorCriticCnnPolicy(PeVFAActorCriticPolicy):
