@@ -4,6 +4,7 @@ trial retried exactly once, a resume from the journal and the report from the st
 import json
 import os
 import pathlib
+import shutil
 import signal
 import socket
 import subprocess
@@ -92,6 +93,36 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     assert row.startswith(f"| {TASK} | {value['ppo']:.0f} ± 0 (1) | {value['opr-e2e']:.0f} ± 0 (1) **{ratio:.2f}x** |")
     assert "Campaigns tiny: 2 of 2 runs complete." in text and "Deviations from the paper" in text
     assert (tmp_path / "curves.png").stat().st_size > 10_000
+
+
+def test_a_journal_of_the_old_layout_finishes_its_grid_and_reports_both_runs(tmp_path):
+    """A journal that the engine wrote before it became a package (seed 0 complete, seed 1 never run): the same
+    command finishes the grid, the old trial stays as it was, and the status and the report read both runs."""
+    journal = tmp_path / "old.journal"
+    shutil.copy(ROOT / "tests" / "data" / "old_layout.journal", journal)
+    old = _study("old-layout", journal).trials[0]
+    assert old.state == TrialState.COMPLETE and old.params["seed"] == 0 and old.value == 15.0
+    stdout = _campaign("run", "--campaign", "old-layout", "--storage", str(journal), "--workers", "1")
+    assert "old-layout: 1/2 grid points complete, 1 waiting" in stdout
+    trials = _study("old-layout", journal).get_trials()
+    assert [(t.params["seed"], t.state) for t in trials] == [(0, TrialState.COMPLETE), (1, TrialState.COMPLETE)]
+    assert trials[0].user_attrs == old.user_attrs and trials[0].value == old.value  # kept as the old code stored it
+    new = trials[1]
+    assert new.user_attrs["curve"]["steps"] == [2000, 4000] and new.value == new.user_attrs["max_average_return"]
+    assert set(new.user_attrs) == set(old.user_attrs)  # the attributes a trial stores, under the same keys
+    assert set(new.user_attrs["worker"]) == set(old.user_attrs["worker"])
+    assert set(new.user_attrs["versions"]) == set(old.user_attrs["versions"])
+    shown = _campaign("status", "--campaign", "old-layout", "--storage", str(journal))
+    assert "#0:COMPLETE (max average return 15)" in shown and f"#1:COMPLETE (max average return {new.value:.0f})" in shown
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign_report.py"), "--campaign", "old-layout",
+               "--storage", str(journal), "--out", str(tmp_path / "report")]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    text = (tmp_path / "report" / "report.md").read_text()
+    scores = np.array([old.value, new.value])
+    assert "Campaigns old-layout: 2 of 2 runs complete." in text and text == result.stdout.removesuffix("\n")
+    assert f"| {TASK} | {scores.mean():.0f} ± {scores.std() / 2:.0f} (2) |" in text
+    assert (tmp_path / "report" / "curves.png").stat().st_size > 10_000
 
 
 def test_two_machines_share_one_campaign_on_postgresql(postgres_url):
