@@ -20,12 +20,14 @@ def _installed(module: str) -> bool:
         return False
 
 
-def missing_extra(extra: str, what: str) -> str | None:
+def missing_extra(extra: str, what: str, modules: tuple[str, ...] | None = None) -> str | None:
     """The message to show where ``extra`` is not installed (None where it is): what needs it, the missing modules
-    and the command that installs them."""
+    and the command that installs them.
+
+    :param modules: The extra's modules that ``what`` needs (default: all of them)"""
     if extra not in EXTRAS:
         raise ValueError(f"Unknown extra {extra!r}, valid choices: {sorted(EXTRAS)}")
-    missing = [module for module in EXTRAS[extra] if not _installed(module)]
+    missing = [module for module in modules or EXTRAS[extra] if not _installed(module)]
     if not missing:
         return None
     return (
@@ -34,9 +36,10 @@ def missing_extra(extra: str, what: str) -> str | None:
     )
 
 
-def require_extra(extra: str, what: str) -> None:
-    """Raise ``ModuleNotFoundError`` with :func:`missing_extra`'s message where ``extra`` is not installed."""
-    message = missing_extra(extra, what)
+def require_extra(extra: str, what: str, modules: tuple[str, ...] | None = None) -> None:
+    """Raise ``ModuleNotFoundError`` with :func:`missing_extra`'s message where ``extra`` (or the given ``modules``
+    of it) is not installed."""
+    message = missing_extra(extra, what, modules)
     if message is not None:
         raise ModuleNotFoundError(message)
 

@@ -159,9 +159,13 @@ def test_the_actor_update_is_ten_full_batch_adam_steps():
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+    steps = []
+    step = model.policy.optimizer.step
+    model.policy.optimizer.step = lambda *a, **k: steps.append(1) or step(*a, **k)  # type: ignore[method-assign]
     with model.policy.critic_frozen():
         model._train_actor_critic()
-    assert model._n_updates == 10  # 10 epochs of one batch
+    assert len(steps) == 10 and model._n_updates == 10  # 10 epochs of one batch: 10 Adam steps
+    assert model.batch_size == 32  # the critic's minibatch size is back
     for ours, theirs in zip(model.policy.layout.flatten(model.policy), policy.layout.flatten(policy)):
         assert abs(float(ours) - float(theirs)) <= 1e-6
     assert not th.equal(model.policy.layout.flatten(model.policy), model.policy.layout.flatten(_model((30,), "ppo").policy))
@@ -258,7 +262,10 @@ def test_authors_protocol_builds_their_networks_and_keeps_them_through_save_and_
     assert model.policy.optimizer.defaults["eps"] == 1e-8
     model.learn(400)
     model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
     loaded = PPOPeVFA.load(tmp_path / "model", env=model.env)
+    loaded.load_history(tmp_path / "history")
+    assert loaded.policy.weight_init == "normal_fan_in" and loaded.policy.optimizer.defaults["eps"] == 1e-8
     for name in (
         "rollout_episodes",
         "actor_batch_size",
@@ -269,7 +276,15 @@ def test_authors_protocol_builds_their_networks_and_keeps_them_through_save_and_
         assert getattr(loaded, name) == getattr(model, name)
     assert loaded.policy.mean_activation_fn is nn.Tanh and loaded.policy.log_std_lr_scale == 6.5
     assert th.equal(loaded.policy.layout.flatten(loaded.policy), model.policy.layout.flatten(model.policy))
+    loaded.learn(200, reset_num_timesteps=False)  # trains on: the log-std's rate follows the actor's, scaled
+    rates = {g.get("name"): g["lr"] for g in loaded.policy.optimizer.param_groups}
+    assert rates == {"actor": 1e-4, "critic": 1e-3, "log_std": pytest.approx(6.5e-4)}
+    assert loaded.rollout_buffer.buffer_size < 200 or loaded._last_episode_starts[0]  # whole episodes still
     assert any("log-std" in line for line in AUTHORS_DEVIATIONS)
+    # a history of tanh-mean actors does not load into a model of linear means
+    linear = PPOPeVFA("MlpPolicy", model.env, **authors_protocol("ppo_pevfa", policy_kwargs=dict(mean_activation_fn=None)))
+    with pytest.raises(ValueError, match="actor_mean_activation: file has 'Tanh', model expects None"):
+        linear.load_history(tmp_path / "history")
 
 
 @pytest.mark.parametrize(
@@ -281,6 +296,9 @@ def test_authors_protocol_builds_their_networks_and_keeps_them_through_save_and_
         (dict(critic_minibatches="odd"), "valid choices: ('sb3', 'even')"),
         (dict(actor_batch_size="all", update_order="critic_first"), "actor_batch_size must be"),
         (dict(actor_batch_size="full"), "update_order='critic_first'"),
+        (dict(critic_minibatches="even"), "critic_minibatches='even' shapes the critic's own epochs"),
+        (dict(rollout_episodes=5, history_targets="recomputed"), "does not take rollout_episodes"),
+        (dict(train_on_clipped_actions=True, use_sde=True, policy_kwargs=dict(squash_output=True)), "not with squash_output"),
         (dict(policy_kwargs=dict(weight_init="xavier", ortho_init=False)), "valid choices: (None, 'normal_fan_in')"),
         (dict(policy_kwargs=dict(weight_init="normal_fan_in")), "pass ortho_init=False"),
         (dict(policy_kwargs=dict(log_std_lr_scale=0.0)), "log_std_lr_scale must be"),
@@ -300,3 +318,25 @@ def test_options_that_need_one_env_or_a_box_say_so():
         PPOPeVFA("MlpPolicy", "CartPole-v1", policy_kwargs=dict(mean_activation_fn=nn.Tanh))
     with pytest.raises(ValueError, match="Unknown algorithm 'sac' of the authors' protocol"):
         authors_protocol("sac")
+
+
+def test_the_key_encoder_of_cl_starts_as_the_encoder_under_their_initialization():
+    model = _model(representation_objectives=("cl",))
+    encoder, key = model.policy.representation, model.policy.objectives["cl"].key_encoder
+    for (name, ours), (_, theirs) in zip(encoder.state_dict().items(), key.state_dict().items(), strict=True):
+        assert th.equal(ours, theirs), name
+
+
+def test_objectives_follow_the_steps_a_rollout_of_whole_episodes_collected():
+    model = _model((30,), representation_objectives=("cl",), history_learning_starts=0)
+    objective = model.policy.objectives["cl"]
+    objective.learning_starts = 0
+    calls = []
+    loss = objective.loss
+    objective.loss = lambda *a, **k: calls.append(1) or loss(*a, **k)  # type: ignore[method-assign]
+    for _ in range(3):
+        _rollout(model)
+        model.train()
+    # 15 per 150-step rollout (one per 10 steps), none in the first (a contrast needs two policies); 200 per rollout
+    # if each counted n_steps (2000)
+    assert model.rollout_buffer.buffer_size == 150 and len(calls) == 0 + 15 + 15

@@ -73,7 +73,7 @@ NEEDS_EXTRA = [
     (["-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
     (["-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "optuna"),
     (["-m", "sb3_pevfa.record_video", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
-    (["-c", "import sb3_pevfa.diagnostics"], "diagnostics", "tensorboard"),
+    (["-c", "import sb3_pevfa.diagnostics"], "diagnostics", "scipy"),
 ]
 
 

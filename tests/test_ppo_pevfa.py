@@ -1,3 +1,4 @@
+import copy
 import warnings
 
 import gymnasium as gym
@@ -1102,3 +1103,52 @@ def test_a_model_loaded_without_its_history_says_so_once_when_it_learns(tmp_path
         warnings.simplefilter("always")
         again.learn(64, reset_num_timesteps=False)
     assert not [w for w in caught if "its policy history is empty" in str(w.message)]
+
+
+def test_the_cached_chi_follows_every_write_to_the_encoder_and_the_record():
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(128)
+    policy = model.policy
+    policy.set_training_mode(False)
+
+    def fresh() -> th.Tensor:
+        with th.no_grad():
+            policy.representation.train(False)
+            return policy.embed(policy.behaviour_record())
+
+    cached = policy.behaviour_embedding()
+    assert th.equal(cached, fresh()) and policy.behaviour_embedding() is cached  # a hit while nothing changed
+    with th.no_grad():  # an edit in place
+        next(policy.representation.parameters()).mul_(1.5)
+    assert not th.equal(policy.behaviour_embedding(), cached)
+    assert th.allclose(policy.behaviour_embedding(), fresh())
+    vector = policy.parameters_to_vector()  # SB3's load_from_vector replaces the parameters' data
+    policy.load_from_vector(vector * 0.5)
+    assert th.allclose(policy.behaviour_embedding(), fresh())
+    policy.to("cpu")
+    policy.behaviour_params.add_(1.0)  # the behaviour record
+    assert th.allclose(policy.behaviour_embedding(), fresh())
+
+
+def test_switching_the_training_mode_sets_every_module_as_torch_does():
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", representation_objectives=("cl",), **FAST)
+    policy = model.policy
+    for mode in (False, True, False):
+        policy.set_training_mode(mode)
+        assert {module.training for module in policy.modules()} == {mode}
+    policy.extra = th.nn.Dropout()  # a module added afterwards is listed again
+    policy.set_training_mode(True)
+    assert policy.extra.training and {m.training for m in policy.modules()} == {True}
+    with pytest.raises(ValueError, match="training mode is expected to be a bool"):
+        policy.set_training_mode(1)
+
+    class Recorded(th.nn.Linear):  # a module with its own train(): torch's recursion is kept for it
+        def train(self, mode: bool = True):
+            self.switched = mode
+            return super().train(mode)
+
+    policy.recorded = Recorded(2, 2)
+    policy.set_training_mode(False)
+    assert policy.recorded.switched is False and {m.training for m in policy.modules()} == {False}
+    copied = copy.deepcopy(policy)
+    copied.set_training_mode(True)
+    assert {m.training for m in copied.modules()} == {True} and {m.training for m in policy.modules()} == {False}

@@ -4,7 +4,7 @@ They need the ``diagnostics`` extra (``pip install "sb3-pevfa[diagnostics]"``)."
 
 from sb3_pevfa.extras import require_extra
 
-require_extra("diagnostics", "sb3_pevfa.diagnostics")
+require_extra("diagnostics", "sb3_pevfa.diagnostics", modules=("scipy",))  # the others are imported where used
 
 
 from sb3_pevfa.diagnostics.embedding_maps import plot_embedding_maps, policy_embeddings

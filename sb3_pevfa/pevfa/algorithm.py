@@ -75,7 +75,6 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self._history_credit = 0
         self._objective_credit: dict[str, int] = {}
         self._rollout_episode_returns: list[float] = []
-        self._warned_empty_history = False
 
     def _setup_model(self) -> None:
         if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):
@@ -97,8 +96,12 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         self.policy_kwargs = with_saved_critic(self.policy_kwargs)
         if self.rollout_episodes is not None and self.n_envs != 1:
             raise ValueError(f"rollout_episodes collects whole episodes of one env, got n_envs={self.n_envs}")
+        if self.rollout_episodes is not None and self.history_targets == "recomputed":
+            raise ValueError("history_targets='recomputed' needs rollouts of n_steps: it does not take rollout_episodes")
         if self.train_on_clipped_actions and not isinstance(self.action_space, spaces.Box):
             raise ValueError(f"train_on_clipped_actions needs a Box action space, got {self.action_space}")
+        if self.train_on_clipped_actions and self.policy_kwargs.get("squash_output", False):
+            raise ValueError("train_on_clipped_actions stores the env's actions: not with squash_output=True (gSDE)")
         rollout_size = self.n_steps * self.n_envs
         if self.history_train_freq > 0 and self.history_buffer_size <= rollout_size:
             raise ValueError(
@@ -186,7 +189,6 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
             "_shared_params",
             "_raw_rollout",
             "_last_raw_obs",
-            "_warned_empty_history",
         ]
 
     @property
@@ -247,8 +249,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
 
     def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
         reads_history = self.history_train_freq > 0 or len(self.policy.objectives) > 0
-        if self.num_timesteps > 0 and not self.history.n_policies and reads_history and not self._warned_empty_history:
-            self._warned_empty_history = True
+        if self.num_timesteps > 0 and not self.history.n_policies and reads_history:  # after one learn() it is not empty
             warnings.warn(
                 f"This model has trained {self.num_timesteps} steps but its policy history is empty (a model file "
                 "holds no history): its historical critic updates start again from nothing. Call "
@@ -349,7 +350,7 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
         for name, objective in self.policy.objectives.items():
             if self.num_timesteps < objective.learning_starts:
                 continue
-            credit = self._objective_credit.get(name, 0) + self.n_steps * self.n_envs
+            credit = self._objective_credit.get(name, 0) + self._rollout_size()
             n_updates, self._objective_credit[name] = divmod(credit, self.objective_train_freq(objective))
             optimizer = getattr(self.policy, f"{name}_optimizer")
             metrics[f"{name}_updates"] = []
@@ -371,6 +372,10 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 metrics[f"{name}_updates"].append(1.0)
             optimizer.zero_grad()  # no stale gradient of the objective's own modules in the next update's clip norm
         return metrics
+
+    def _rollout_size(self) -> int:
+        """Env steps of the latest rollout: ``n_steps * n_envs``, or what a rollout of whole episodes collected."""
+        return self.rollout_buffer.buffer_size * self.n_envs
 
     def objective_train_freq(self, objective: RepresentationObjective) -> int:
         """Environment steps per step of ``objective``: its own ``train_freq``, else ``history_train_freq`` (the

@@ -149,6 +149,8 @@ def _check_rollout_options(arguments: dict[str, Any]) -> None:
         raise ValueError(
             f"Unknown critic_minibatches {arguments['critic_minibatches']!r}, valid choices: {CRITIC_MINIBATCHES}"
         )
+    if arguments["critic_minibatches"] == "even" and arguments["update_order"] != "critic_first":
+        raise ValueError("critic_minibatches='even' shapes the critic's own epochs of update_order='critic_first'")
     rollout_options = {
         "rollout_episodes": episodes is not None,
         "bootstrap_truncated=False": arguments["bootstrap_truncated"] is False,

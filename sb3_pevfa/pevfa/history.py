@@ -26,7 +26,7 @@ HISTORY_FORMAT_VERSION = 4
 #: raw observations for VecNormalize).
 _READABLE_VERSIONS = (1, 2, 3, 4)
 #: Signature entries that older files lack, and the value they then mean
-_SIGNATURE_DEFAULTS = {"transitions": False, "renormalize": False}
+_SIGNATURE_DEFAULTS = {"transitions": False, "renormalize": False, "actor_mean_activation": None}
 #: Rows normalised and evaluated at a time when targets are recomputed (bounds the temporaries)
 NORMALIZE_CHUNK = 16384
 
@@ -220,6 +220,9 @@ class PolicyHistory:
             "action_space_details": str(self.action_space),
             "actor_linear_shapes": None if self.layout is None else [list(shape) for shape in self.layout.linear_shapes],
             "actor_log_std_shape": None if self.layout is None else list(self.layout.log_std_shape),
+            "actor_mean_activation": None
+            if self.layout is None or self.layout.mean_activation_fn is None
+            else self.layout.mean_activation_fn.__name__,
             "transitions": self.transitions,
             "renormalize": self.renormalize,
         }

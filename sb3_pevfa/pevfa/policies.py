@@ -97,8 +97,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         (see :mod:`sb3_pevfa.pevfa.objectives`)
     :param mean_activation_fn: Activation of the Gaussian's mean (e.g. ``nn.Tanh``: the authors' code); None: linear
         (SB3's). Box action spaces without gSDE
-    :param weight_init: ``"normal_fan_in"``: every linear layer of the policy (actor, critic, encoder, objectives)
-        N(0, 1/fan_in), biases 0 (the authors' code); None: PyTorch's, or SB3's orthogonal one (``ortho_init``)
+    :param weight_init: ``"normal_fan_in"``: every linear layer of the actor, the critic and the encoder N(0, 1/fan_in),
+        biases 0 (the authors' code; the objectives' own heads keep PyTorch's); None: PyTorch's, or SB3's orthogonal
+        one (``ortho_init``)
     :param log_std_lr_scale: The log-std's learning rate over the actor's (its own parameter group). The authors'
         log-variance, a sum of 13 trainable rows - 1, moves under Adam as one log-std at 6.5x the rate
         (``tests/test_authors_protocol.py`` shows the equivalence)
@@ -180,7 +181,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         #: False: chi of the behaviour policy carries no gradient even while the critic trains (cached, so the value
         #: loss on the rollout leaves the encoder alone); the algorithm's ``rollout_encoder_gradient`` sets it
         self.behaviour_chi_gradient = True
-        self._embedding_cache: th.Tensor | None = None
+        self._embedding_cache: tuple[tuple, th.Tensor] | None = None
         self._plain_modules: list[nn.Module] | None = None
         super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
 
@@ -207,6 +208,11 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         )
         if self.ortho_init:
             self.value_net.init_weights(self.init_weights)
+        if self.weight_init == "normal_fan_in":  # before the objectives copy the encoder (CL's key encoder)
+            for module in self.modules():
+                if isinstance(module, nn.Linear):
+                    nn.init.normal_(module.weight, std=module.in_features**-0.5)
+                    nn.init.zeros_(module.bias)
         self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
         self.objectives = nn.ModuleDict(
             {
@@ -237,11 +243,6 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         }
         for name, tensor in behaviour.items():
             self.register_buffer(name, tensor, persistent=tensor.numel() > 0)
-        if self.weight_init == "normal_fan_in":
-            for module in self.modules():
-                if isinstance(module, nn.Linear):
-                    nn.init.normal_(module.weight, std=module.in_features**-0.5)
-                    nn.init.zeros_(module.bias)
         excluded = {id(p) for p in [*self.critic_parameters(), *self.objectives.parameters()]}
         log_std = getattr(self, "log_std", None)
         own_log_std_group = self.log_std_lr_scale != 1.0 and isinstance(log_std, nn.Parameter)
@@ -414,7 +415,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         computed with the representation in evaluation mode (SPR: all pairs)."""
         if self.training and self.critic_trainable and self.behaviour_chi_gradient:
             return self.embed(self.behaviour_record())
-        if self._embedding_cache is None:
+        key = self._embedding_key()
+        if self._embedding_cache is None or self._embedding_cache[0] != key:
             representation_mode = self.representation.training
             self.representation.train(False)  # the cached chi reads all of SPR's pairs, as the rollout's values did
             try:
@@ -424,8 +426,16 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
                 self.representation.train(representation_mode)
             if not bool(self.has_behaviour):
                 return embedding
-            self._embedding_cache = embedding
-        return self._embedding_cache
+            self._embedding_cache = (key, embedding)
+        return self._embedding_cache[1]
+
+    def _embedding_key(self) -> tuple[tuple[int, int], ...]:
+        """What the cached chi was computed from: the encoder's parameters and buffers and the behaviour record, each
+        by its storage and version, so that any write to them (an optimizer step, ``load_from_vector``, ``.to()``, an
+        edit in place) makes the cache miss."""
+        tensors = [*self.representation.parameters(), *self.representation.buffers(), self.behaviour_params,
+                   self.behaviour_states, self.behaviour_actions, self.behaviour_codes, self.has_behaviour]  # fmt: skip
+        return tuple((tensor.data_ptr(), tensor._version) for tensor in tensors)
 
     def clear_embedding_cache(self) -> None:
         self._embedding_cache = None
@@ -435,6 +445,11 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         result = super().load_state_dict(*args, **kwargs)
         self.clear_embedding_cache()
         return result
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if isinstance(value, nn.Module):  # a module added or replaced: list them again at the next change of mode
+            self.__dict__["_plain_modules"] = None
+        super().__setattr__(name, value)
 
     def __getstate__(self) -> dict[str, Any]:
         """What pickle and ``copy.deepcopy`` take: the module without the action distribution of the latest call.
@@ -457,6 +472,8 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs). The
         cached chi stays: it is computed in evaluation mode whatever the mode, and every step that moves the encoder
         drops it (:meth:`clear_embedding_cache`)."""
+        if not isinstance(mode, bool):
+            raise ValueError(f"training mode is expected to be a bool, got {mode!r}")
         if mode == self.training:
             return
         if self._plain_modules is None:  # modules whose train() is nn.Module's: their flags can be set in one pass
@@ -466,7 +483,9 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         if not self._plain_modules:
             super().set_training_mode(mode)
             return
-        for module in self._plain_modules:  # what nn.Module.train(mode) sets, without its recursion (CPU time per update)
+        # what nn.Module.train(mode) sets, without its recursion (CPU time per update); a module replaced deeper in the
+        # tree than the policy's own attributes needs ``_plain_modules = None``
+        for module in self._plain_modules:
             module.__dict__["training"] = mode
 
 
