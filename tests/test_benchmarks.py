@@ -62,7 +62,7 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
 def test_best_so_far_by_wall_clock_and_by_cpu_time():
     """An evaluation's CPU time is its run's prorated by steps: by hand on a run of 3 evaluations."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from learning import best_so_far_at, budgets, per_second
+    from engine.zoo_report import best_so_far_at, budgets, per_second
 
     def run(returns, cpu, wall):
         curve = [dict(timesteps=t, mean_return=r, wall_s=w) for t, r, w in zip((100, 200, 300), returns, wall)]
@@ -81,7 +81,7 @@ def test_best_so_far_by_wall_clock_and_by_cpu_time():
 def test_paired_per_second_view_budgets_each_seed_by_its_baseline_run():
     """--paired: each run against the baseline run of its seed (its machine), by hand; a seed without one is left out."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from learning import best_so_far_at, per_second, task_scores
+    from engine.zoo_report import best_so_far_at, per_second, task_scores
 
     def run(seed, returns, cpu, wall):
         curve = [dict(timesteps=t, mean_return=r, wall_s=w) for t, r, w in zip((100, 200, 300), returns, wall)]
@@ -110,7 +110,7 @@ def test_paired_per_second_view_budgets_each_seed_by_its_baseline_run():
 def test_critic_learning_rate_variants_scale_each_entrys_rate(tmp_path):
     """``critic_learning_rate_scale`` becomes a ``critic_learning_rate`` per task, from that task's config entry."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from learning import variant_options
+    from engine.zoo import variant_options
 
     conf = tmp_path / "conf.yml"
     conf.write_text("A-v0:\n  learning_rate: 2.5e-05\nB-v0:\n  n_steps: 32\nC-v0:\n  learning_rate: lin_3e-4\n")
@@ -227,7 +227,7 @@ def test_objective_step_benchmark_times_every_batch(tmp_path):
 
 def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    import aggregate
+    from engine import aggregate
 
     baseline = {"a": np.array([10.0, 30.0]), "b": np.array([1.0, 1.0, 4.0])}  # means 20 and 2
     scores = aggregate.normalized({"a": np.array([20.0, 40.0, 60.0]), "b": np.array([2.0, 8.0])}, baseline)
@@ -246,7 +246,7 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
 
 def test_training_logs_parse_sb3s_own_tables():
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    import training_logs
+    from engine import training_logs
 
     stream = io.StringIO()
     output = HumanOutputFormat(stream)
@@ -273,7 +273,7 @@ def test_normalize_memory_benchmark_shows_the_chunks_bound():
 def test_training_logs_per_window_of_steps_by_hand(tmp_path):
     """Signals and evaluations averaged per window of env steps, then over the seeds that reached it: by hand."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    import training_logs
+    from engine import training_logs
 
     (tmp_path / "logs").mkdir()
     steps = [1000, 2000, 3000, 4000]
@@ -309,7 +309,7 @@ def test_training_logs_peak_and_fall_by_hand(tmp_path):
     (over the runs with three), the swing from one evaluation to the next over the second half and one evaluation's
     standard error there."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    import training_logs
+    from engine import training_logs
 
     runs = (
         [10, 100, 20, 30, 40, 61],  # second half [30, 40, 61]: swing mean(10, 21) = 15.5

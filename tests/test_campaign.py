@@ -1,5 +1,6 @@
-"""Learning campaigns (benchmarks/campaign.py): a tiny grid through Optuna's journal storage, a killed worker's
-trial retried exactly once, a resume from the journal and the report from the storage alone."""
+"""Learning campaigns (benchmarks/campaign.py over the package benchmarks/engine/): a tiny grid through Optuna's
+journal storage, a killed worker's trial retried exactly once, a resume from the journal and the report from the
+storage alone."""
 
 import json
 import os
@@ -22,9 +23,8 @@ from optuna.trial import TrialState
 
 ROOT = pathlib.Path(__file__).parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-import aggregate  # noqa: E402
-import campaign  # noqa: E402
-import campaign_report  # noqa: E402
+import engine.report  # noqa: E402
+from engine import aggregate, commands, definitions, figures, results, storage, tables, training, workers  # noqa: E402
 
 TASK = "InvertedPendulum-v5"
 
@@ -33,7 +33,7 @@ TASK = "InvertedPendulum-v5"
 def checkpoints(tmp_path, monkeypatch):
     """Trials keep their checkpoints in the test's folder (workers started as subprocesses too)."""
     monkeypatch.setenv("SB3_PEVFA_CHECKPOINTS", str(tmp_path / "checkpoints"))
-    monkeypatch.setattr(campaign, "CHECKPOINT_DIR", tmp_path / "checkpoints")
+    monkeypatch.setattr(definitions, "CHECKPOINT_DIR", tmp_path / "checkpoints")
 
 
 def _definition(*variants: str, seeds=("0",), timesteps: int = 4000) -> list[str]:
@@ -49,7 +49,7 @@ def _campaign(*args: str) -> str:
 
 
 def _study(name: str, journal: pathlib.Path) -> optuna.Study:
-    return campaign.open_study(name, campaign.storage_of(name, str(journal)))[0]
+    return storage.open_study(name, storage.storage_of(name, str(journal)))[0]
 
 
 def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
@@ -86,7 +86,7 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
     with pytest.raises(ValueError, match="never changes"):
         _campaign_main("run", "--campaign", "tiny", "--storage", str(journal), *_definition("ppo"))
     # the report, from the storage alone
-    text = campaign_report.report(["tiny"], str(journal), "ppo", 2, tmp_path / "curves.png")
+    text = engine.report.report(["tiny"], str(journal), "ppo", 2, tmp_path / "curves.png")
     value = {t.params["variant"]: t.value for t in trials}
     row = next(line for line in text.splitlines() if line.startswith(f"| {TASK} | "))
     ratio = value["opr-e2e"] / value["ppo"]
@@ -144,7 +144,7 @@ def test_two_machines_share_one_campaign_on_postgresql(postgres_url):
 
 
 def _campaign_main(*args: str) -> None:
-    campaign.main(list(args))
+    commands.campaign_main(list(args))
 
 
 def test_a_killed_workers_trial_is_retried_exactly_once(tmp_path):
@@ -174,8 +174,8 @@ def test_a_killed_workers_trial_is_retried_exactly_once(tmp_path):
 
 
 def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tmp_path):
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3, 4), 4000, 2000, 2)
-    study, _ = campaign.open_study("recover", campaign.storage_of("recover", str(tmp_path / "r.journal")), tiny)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3, 4), 4000, 2000, 2)
+    study, _ = storage.open_study("recover", storage.storage_of("recover", str(tmp_path / "r.journal")), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
 
     def add(seed: int, system_attrs=None, **user_attrs) -> None:
@@ -185,48 +185,48 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
 
     add(0, interrupted="stopped")  # SIGINT / SIGTERM
     add(1)  # its training raised: it stays failed
-    for attempt in range(campaign.MAX_RETRY + 1):  # trials 2-5: its worker died once and on each retry
+    for attempt in range(storage.MAX_RETRY + 1):  # trials 2-5: its worker died once and on each retry
         add(2, {"retry_history": list(range(2, 2 + attempt))} if attempt else None, interrupted="worker gone")
-    for attempt in range(campaign.MAX_RETRY + 2):  # trials 6-10: stopped again and again, never dead
+    for attempt in range(storage.MAX_RETRY + 2):  # trials 6-10: stopped again and again, never dead
         add(3, {"retry_history": list(range(6, 6 + attempt))} if attempt else None, interrupted="stopped")
-    assert campaign.recover(study, tiny) == [0, 10] and campaign.recover(study, tiny) == []  # enqueued once
+    assert storage.recover(study, tiny) == [0, 10] and storage.recover(study, tiny) == []  # enqueued once
     waiting = [t for t in study.get_trials() if t.state == TrialState.WAITING]
-    assert [campaign.grid_point(t) for t in waiting] == [(TASK, "ppo", 0), (TASK, "ppo", 3)]
+    assert [storage.grid_point(t) for t in waiting] == [(TASK, "ppo", 0), (TASK, "ppo", 3)]
     assert waiting[0].system_attrs["retry_history"] == [0] and waiting[1].system_attrs["retry_history"] == [6, 7, 8, 9, 10]
-    assert campaign.pending(study, tiny) == 3  # seeds 0 and 3 again and seed 4, never started; not seeds 1 and 2
-    notes = campaign_report.collect(["recover"], str(tmp_path / "r.journal"))[2]
+    assert storage.pending(study, tiny) == 3  # seeds 0 and 3 again and seed 4, never started; not seeds 1 and 2
+    notes = results.collect(["recover"], str(tmp_path / "r.journal"))[2]
     assert notes == [
         f"{TASK} ppo seed 1: trial 1 failed (its training raised)",
-        f"{TASK} ppo seed 2: trial 5's worker died {campaign.MAX_RETRY + 1} times: not retried again",
+        f"{TASK} ppo seed 2: trial 5's worker died {storage.MAX_RETRY + 1} times: not retried again",
     ]
     with pytest.raises(ValueError, match="Unknown variants \\['opr'\\] of protocol 'paper'"):
-        campaign.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
+        definitions.Campaign("paper", (TASK,), ("opr",), (0,), 4000)
     with pytest.raises(ValueError, match="Unknown campaign 'nothing'"):
-        campaign.open_study("nothing", campaign.storage_of("nothing", str(tmp_path / "n.journal")))
+        storage.open_study("nothing", storage.storage_of("nothing", str(tmp_path / "n.journal")))
 
 
 def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_point(tmp_path, monkeypatch):
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
-    study, _ = campaign.open_study("raise", campaign.storage_of("raise", str(tmp_path / "r.journal")), tiny)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    study, _ = storage.open_study("raise", storage.storage_of("raise", str(tmp_path / "r.journal")), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     params = {"task": TASK, "variant": "ppo", "seed": 0}
     study.add_trial(optuna.create_trial(state=TrialState.FAIL, params=params, distributions=distributions,
                                         user_attrs={"interrupted": "stopped"}))  # fmt: skip
-    assert campaign.recover(study, tiny) == [0]
+    assert storage.recover(study, tiny) == [0]
 
     def raises(*args, **kwargs):
         raise RuntimeError("a NaN in the update")
 
-    monkeypatch.setattr(campaign, "train", raises)
-    study.optimize(campaign.objective(tiny), n_trials=1, catch=(RuntimeError,))  # the retry runs and raises
+    monkeypatch.setattr(workers, "train", raises)
+    study.optimize(workers.objective(tiny), n_trials=1, catch=(RuntimeError,))  # the retry runs and raises
     retry = study.trials[1]
     assert retry.state == TrialState.FAIL and retry.system_attrs["failed_trial"] == 0 and not retry.user_attrs["interrupted"]
-    assert campaign.recover(study, tiny) == []  # a training that raised stays failed
+    assert storage.recover(study, tiny) == []  # a training that raised stays failed
     # a grid point that another trial has taken is pruned, never trained twice
     study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, params={**params, "seed": 1},
                                         distributions=distributions))  # fmt: skip
     study.enqueue_trial({**params, "seed": 1})
-    study.optimize(campaign.objective(tiny), n_trials=1)
+    study.optimize(workers.objective(tiny), n_trials=1)
     assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 2
 
 
@@ -234,9 +234,9 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
     """A retry enqueued while trials of other points exist, then a worker to the end: each point trains once and no
     trial is pruned as a duplicate (a retry that took the sampler's grid id of its number left that id's point to
     random draws of the whole grid, most of them duplicates)."""
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), tuple(range(8)), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), tuple(range(8)), 4000, 2000, 2)
     journal = str(tmp_path / "d.journal")
-    study, _ = campaign.open_study("draws", campaign.storage_of("draws", journal), tiny)
+    study, _ = storage.open_study("draws", storage.storage_of("draws", journal), tiny)
     trained = []
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
@@ -246,11 +246,11 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
         keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
         return {"max_average_return": float(seed), **dict.fromkeys(keys, 1.0)}
 
-    monkeypatch.setattr(campaign, "train", train)
+    monkeypatch.setattr(workers, "train", train)
     with pytest.raises(KeyboardInterrupt):
-        campaign.work_on("draws", study, tiny)
-    assert campaign.recover(study, tiny) == [2]
-    campaign.work_on("draws", study, tiny)
+        workers.work_on("draws", study, tiny)
+    assert storage.recover(study, tiny) == [2]
+    workers.work_on("draws", study, tiny)
     trials = study.get_trials()
     assert sorted(trained) == sorted([*range(8), trained[2]])  # the stopped one twice, every other point once
     assert [t.state for t in trials].count(TrialState.PRUNED) == 0 and len(trials) == 9
@@ -261,18 +261,18 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
 
 def test_a_worker_with_nothing_left_waits_for_running_trials_and_runs_one_whose_worker_died(tmp_path, monkeypatch):
     """The last grid point runs in another worker, which dies: a worker out of work does not exit but retries it."""
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
     journal = str(tmp_path / "w.journal")
-    study, _ = campaign.open_study("wait", campaign.storage_of("wait", journal), tiny)
+    study, _ = storage.open_study("wait", storage.storage_of("wait", journal), tiny)
     gone = subprocess.Popen(["true"])
     gone.wait()  # a worker of this machine that is gone, its heartbeat recent
-    worker = {"host": socket.gethostname(), "boot_id": campaign._boot_id(), "pid": gone.pid}
+    worker = {"host": socket.gethostname(), "boot_id": storage.boot_id(), "pid": gone.pid}
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     params = {"task": TASK, "variant": "ppo", "seed": 0}
     attrs = {"worker": worker, "heartbeat": time.time()}
     running = optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions, user_attrs=attrs)
     study.add_trial(running)
-    assert campaign.pending(study, tiny) == 0 and campaign.running(study, tiny) == 1
+    assert storage.pending(study, tiny) == 0 and storage.running(study, tiny) == 1
     trained = []
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
@@ -280,23 +280,23 @@ def test_a_worker_with_nothing_left_waits_for_running_trials_and_runs_one_whose_
         keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
         return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
 
-    monkeypatch.setattr(campaign, "train", train)
-    campaign.work(["wait"], journal)
+    monkeypatch.setattr(workers, "train", train)
+    workers.work(["wait"], journal)
     trials = study.get_trials()
     assert trained == [0] and [t.state for t in trials] == [TrialState.FAIL, TrialState.COMPLETE]
     assert trials[0].user_attrs["interrupted"] == "worker gone" and trials[1].system_attrs["retry_history"] == [0]
 
 
 def test_the_report_names_the_runs_that_went_on_from_a_checkpoint_in_one_line(tmp_path):
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
     journal = str(tmp_path / "c.journal")
-    study, _ = campaign.open_study("resumed", campaign.storage_of("resumed", journal), tiny)
+    study, _ = storage.open_study("resumed", storage.storage_of("resumed", journal), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     for seed, resumed in ((0, 2000), (1, 0), (2, 4000)):
         study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, distributions=distributions,
                                             params={"task": TASK, "variant": "ppo", "seed": seed},
                                             user_attrs={"resumed_from": resumed}))  # fmt: skip
-    notes = campaign_report.collect(["resumed"], journal)[2]
+    notes = results.collect(["resumed"], journal)[2]
     assert notes == [
         f"Went on from a checkpoint (task, variant, seed, at env step): {TASK} ppo 0 (2,000), {TASK} ppo 2 (4,000)"
     ]
@@ -310,19 +310,19 @@ def test_a_new_trial_leaves_its_grid_point_to_a_retried_one():
         return made
 
     new, retry = trial(5, TrialState.RUNNING), trial(4, TrialState.RUNNING, retried=True)
-    assert campaign._yields(new, retry) and not campaign._yields(retry, new)  # whichever checks first
-    assert campaign._yields(new, trial(6, TrialState.WAITING, retried=True))  # the retry not started yet
-    assert not campaign._yields(retry, trial(6, TrialState.RUNNING))  # a later new one: the retry keeps the point
-    assert campaign._yields(trial(7, TrialState.RUNNING), new) and not campaign._yields(new, trial(7, TrialState.RUNNING))
-    assert campaign._yields(retry, trial(9, TrialState.COMPLETE))  # the point is done
-    assert not campaign._yields(new, trial(1, TrialState.FAIL)) and not campaign._yields(new, trial(2, TrialState.PRUNED))
+    assert workers._yields(new, retry) and not workers._yields(retry, new)  # whichever checks first
+    assert workers._yields(new, trial(6, TrialState.WAITING, retried=True))  # the retry not started yet
+    assert not workers._yields(retry, trial(6, TrialState.RUNNING))  # a later new one: the retry keeps the point
+    assert workers._yields(trial(7, TrialState.RUNNING), new) and not workers._yields(new, trial(7, TrialState.RUNNING))
+    assert workers._yields(retry, trial(9, TrialState.COMPLETE))  # the point is done
+    assert not workers._yields(new, trial(1, TrialState.FAIL)) and not workers._yields(new, trial(2, TrialState.PRUNED))
 
 
 def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
     """Each evaluation burns 3 s of CPU: the training CPU time of the run and of its curve leaves it out, the
     evaluation time holds it (an update and a 2000-step rollout take about a second here)."""
-    tiny = campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
-    evaluate = campaign.evaluate_policy
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    evaluate = training.evaluate_policy
 
     def slow_evaluation(*args, **kwargs):
         start = time.process_time()
@@ -330,8 +330,8 @@ def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
             pass
         return evaluate(*args, **kwargs)
 
-    monkeypatch.setattr(campaign, "evaluate_policy", slow_evaluation)
-    result = campaign.train(tiny, TASK, "ppo", 0)
+    monkeypatch.setattr(training, "evaluate_policy", slow_evaluation)
+    result = training.train(tiny, TASK, "ppo", 0)
     cpu = result["curve"]["cpu_s"]
     assert result["eval_cpu_seconds"] >= 6.0
     assert cpu[1] - cpu[0] < 3.0  # a rollout and an update between the evaluations, not the first evaluation
@@ -342,17 +342,17 @@ def test_training_cpu_time_excludes_the_evaluations(monkeypatch):
 def test_report_statistics_by_hand(monkeypatch):
     runs = {"A": {"ppo": [{"max_average_return": 100.0}, {"max_average_return": 200.0}],
                   "opr-e2e": [{"max_average_return": 300.0}, {"max_average_return": 400.0}]}}  # fmt: skip
-    row = campaign_report.table(runs, "ppo", paper=False)[2]
+    row = tables.table(runs, "ppo", paper=False)[2]
     assert row == "| A | 150 ± 25 (2) | 350 ± 25 (2) **2.33x** |"  # mean ± half the std over seeds, ratio of means
     run = {"curve": {"mean": [1.0, 5.0, 3.0, 9.0], "cpu_s": [1.0, 2.0, 3.0, 4.0]}}
-    assert campaign_report.best_so_far_at(run, 3.5) == 5.0 and np.isnan(campaign_report.best_so_far_at(run, 0.5))
+    assert tables.best_so_far_at(run, 3.5) == 5.0 and np.isnan(tables.best_so_far_at(run, 0.5))
 
     # speed against the baseline's runs on the same machine: 50 against 100 there, not against 400 on another
     def timed(speed: float, boot: str) -> dict:
         return {"steps_per_cpu_second": speed, "steps_per_wall_second": speed, "cpu_seconds": 4.0, "curve": run["curve"],
                 "worker": {"boot_id": boot}}  # fmt: skip
 
-    rows = campaign_report.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
+    rows = tables.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
     assert rows[0] == "| task | ppo | opr-e2e |" and rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
 
     # per env step the max average returns, 40 / 20; per CPU-second the best within PPO's 2 CPU-seconds, 30 / 10
@@ -360,7 +360,7 @@ def test_report_statistics_by_hand(monkeypatch):
         return {"max_average_return": max(values), "cpu_seconds": 2.0, "curve": {"mean": values, "cpu_s": cpu}}
 
     ppo, opr = [scored([10.0, 20.0], [1.0, 3.0])] * 2, [scored([30.0, 40.0], [1.5, 5.0])] * 2
-    rows, normalized = campaign_report.aggregates({"A": {"ppo": ppo, "opr-e2e": opr}}, "ppo")
+    rows, normalized = tables.aggregates({"A": {"ppo": ppo, "opr-e2e": opr}}, "ppo")
     assert rows[2:] == ["| ppo | 1 | 2 | 1.00 [1.00, 1.00] | — | 1.00 [1.00, 1.00], — |",
                         "| opr-e2e | 1 | 2 | 2.00 [2.00, 2.00] | 1.00 | 3.00 [3.00, 3.00], 1.00 |"]  # fmt: skip
     assert normalized["opr-e2e"]["A"].tolist() == [2.0, 2.0]  # the profile's scores are per env step
@@ -370,62 +370,62 @@ def test_report_statistics_by_hand(monkeypatch):
         return {"A": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([a], [1.0])] * 2},
                 "B": {"ppo": [scored([100.0], [1.0])] * 2, "opr-e2e": [scored([b], [1.0])] * 2}}  # fmt: skip
 
-    assert campaign_report.target(two_tasks(150.0, 90.0), "ppo", {"ppo": 6, "opr-e2e": 4}) == [
+    assert tables.target(two_tasks(150.0, 90.0), "ppo", {"ppo": 6, "opr-e2e": 4}) == [
         "- opr-e2e: above ppo on 1 of 2 tasks (below on B 0.90x), IQM 1.20 [1.20, 1.20]: missed by 4 task(s); "
         "provisional, runs to come: 2 of ppo"
     ]
-    assert campaign_report.target(two_tasks(110.0, 80.0), "ppo", {"opr-e2e": 6}) == [  # [1.1, 1.1, 0.8, 0.8]
+    assert tables.target(two_tasks(110.0, 80.0), "ppo", {"opr-e2e": 6}) == [  # [1.1, 1.1, 0.8, 0.8]
         "- opr-e2e: above ppo on 1 of 2 tasks (below on B 0.80x), IQM 0.95 [0.95, 0.95]: missed by 4 task(s), "
         "0.200 of IQM, 0.050 of the lower bound; provisional, runs to come: 2 of opr-e2e"
     ]
     # within half a percent of the baseline's mean: a tie, not above
-    assert campaign_report.target(two_tasks(150.0, 100.4), "ppo", {})[0].startswith(
+    assert tables.target(two_tasks(150.0, 100.4), "ppo", {})[0].startswith(
         "- opr-e2e: above ppo on 1 of 2 tasks (tied on B 1.00x), IQM 1.25"
     )
     three = {**two_tasks(150.0, 100.4), "C": two_tasks(90.0, 0.0)["A"]}
-    assert "on 1 of 3 tasks (tied on B 1.00x; below on C 0.90x)" in campaign_report.target(three, "ppo", {})[0]
+    assert "on 1 of 3 tasks (tied on B 1.00x; below on C 0.90x)" in tables.target(three, "ppo", {})[0]
     two = two_tasks(150.0, 102.0)  # [1.5, 1.5, 1.02, 1.02]: IQM 1.26, both tasks above
-    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: "
-                                                      "missed by 3 task(s)"]  # fmt: skip
-    monkeypatch.setitem(campaign_report.TARGET, "tasks", 2)
-    assert campaign_report.target(two, "ppo", {})[0].endswith("IQM 1.26 [1.26, 1.26]: met")
+    assert tables.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: "
+                                             "missed by 3 task(s)"]  # fmt: skip
+    monkeypatch.setitem(tables.TARGET, "tasks", 2)
+    assert tables.target(two, "ppo", {})[0].endswith("IQM 1.26 [1.26, 1.26]: met")
     two["A"]["opr-e2e+local-generalization"] = two["A"]["opr-e2e"]  # the diagnostic's runs: in the table only
-    assert "opr-e2e+local-generalization" in campaign_report.table(two, "ppo", paper=False)[0]
-    assert [row.split(" |")[0] for row in campaign_report.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
+    assert "opr-e2e+local-generalization" in tables.table(two, "ppo", paper=False)[0]
+    assert [row.split(" |")[0] for row in tables.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
     two["B"]["opr-e2e-default-schedule"] = two["B"]["opr-e2e"]  # the target is the paper's OPR-E2E's alone
-    assert campaign_report.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: met"]
-    assert campaign_report.target(two, "opr-e2e", {}) == []  # nor against itself as the baseline
+    assert tables.target(two, "ppo", {}) == ["- opr-e2e: above ppo on 2 of 2 tasks, IQM 1.26 [1.26, 1.26]: met"]
+    assert tables.target(two, "opr-e2e", {}) == []  # nor against itself as the baseline
     # training signals: the mean over the last third of a run's iterations, then over runs; — where none is logged
     nan = float("nan")
     logged = {"train/explained_variance": [0.0, 0.0, 0.0, 0.0, 0.5, 0.7], "pevfa/value_chi_gradient": [nan] * 3 + [1, 2, 6]}
     other = {"train/explained_variance": [0.0] * 4 + [0.9, 0.9], "pevfa/value_chi_gradient": [nan] * 6}
-    rows = campaign_report.training_signals({"A": {"opr": [{"training_log": logged}, {"training_log": other}]}})
+    rows = tables.training_signals({"A": {"opr": [{"training_log": logged}, {"training_log": other}]}})
     assert rows[2] == "| A | opr | 2 | 0.75 | — | 4 | — | — |"  # (0.6 + 0.9) / 2; (2 + 6) / 2, the all-nan run apart
     # expected duration: the whole grid, a missing seed at its variant's mean time on the task; a complete grid says so
-    grid = campaign.Campaign("sb3", ("A",), ("ppo",), (0, 1), 1000, eval_freq=1000)
+    grid = definitions.Campaign("sb3", ("A",), ("ppo",), (0, 1), 1000, eval_freq=1000)
     done = {"seed": 0, "cpu_seconds": 3000.0, "eval_cpu_seconds": 600.0, "wall_seconds": 3600.0, "eval_wall_seconds": 0.0}
-    assert "about 2.0 CPU-hours in all, 0.5 wall-clock hours left on 2" in campaign_report.expected_duration(
+    assert "about 2.0 CPU-hours in all, 0.5 wall-clock hours left on 2" in results.expected_duration(
         {"A": {"ppo": [done]}}, {}, [grid], workers=2
     )
     complete = {"A": {"ppo": [done, {**done, "seed": 1}]}}
-    assert campaign_report.expected_duration(complete, {}, [grid], workers=2).startswith("Duration: 2.0 CPU-hours")
+    assert results.expected_duration(complete, {}, [grid], workers=2).startswith("Duration: 2.0 CPU-hours")
     # a variant not yet run on a task: another variant's time there, times the two variants' ratio where both ran
-    two_variants = campaign.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
+    two_variants = definitions.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
     slow = {**done, "cpu_seconds": 6600.0, "wall_seconds": 7200.0}  # twice ppo's time on A
     runs = {"A": {"ppo": [done], "opr": [slow]}, "B": {"ppo": [{**done, "cpu_seconds": 1200.0, "wall_seconds": 1800.0}]}}
-    assert "about 4.5 CPU-hours in all, 1.0 wall-clock hours left on 1" in campaign_report.expected_duration(
+    assert "about 4.5 CPU-hours in all, 1.0 wall-clock hours left on 1" in results.expected_duration(
         runs, {}, [two_variants], workers=1
     )  # 1 + 2 + 0.5 + 0.5 * 2 CPU-hours of training and evaluation; 0.5 * 2 wall-clock hours left on B
     running = {("B", "opr"): [{"steps": 500, "cpu_s": 1800.0, "wall_s": 1800.0, "seed": 0}]}  # B's run half done
-    assert "about 4.5 CPU-hours in all, 0.5 wall-clock hours left on 1" in campaign_report.expected_duration(
+    assert "about 4.5 CPU-hours in all, 0.5 wall-clock hours left on 1" in results.expected_duration(
         runs, running, [two_variants], workers=1
     )  # extrapolated from its progress: 3600 CPU-s and wall-s in all, 1800 of them left
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
-    assert campaign_report.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
+    assert tables.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM
     scores, base = {"A": np.array([2.0, 2.1, 1.9, 2.0])}, {"A": np.array([0.5, 1.5, 0.8, 1.2])}
-    fixed = campaign_report.aggregate.stratified_bootstrap_ci(campaign_report.aggregate.normalized(scores, base))
-    low, high = campaign_report.aggregate.normalized_bootstrap_ci(scores, base)
+    fixed = aggregate.stratified_bootstrap_ci(aggregate.normalized(scores, base))
+    low, high = aggregate.normalized_bootstrap_ci(scores, base)
     assert high - low > 2 * (fixed[1] - fixed[0]) and low < 2.0 < high
 
 
@@ -440,13 +440,13 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     # a task where the baseline's mean is negative: -50 against -100 is better, a ratio 0.5 would read worse
     runs = {"A": {"ppo": [scored(100.0)] * 2, "opr-e2e": [scored(150.0)] * 2},
             "B": {"ppo": [scored(-100.0)] * 2, "opr-e2e": [scored(-50.0)] * 2}}  # fmt: skip
-    assert campaign_report.comparable(runs, "ppo", "opr-e2e") == ["A"]
-    rows, _ = campaign_report.aggregates(runs, "ppo")
+    assert tables.comparable(runs, "ppo", "opr-e2e") == ["A"]
+    rows, _ = tables.aggregates(runs, "ppo")
     assert rows[3] == "| opr-e2e | 1 | 2 | 1.50 [1.50, 1.50] | 1.00 | 1.50 [1.50, 1.50], 1.00 |"
-    assert campaign_report.target(runs, "ppo", {})[0].startswith("- opr-e2e: above ppo on 1 of 1 tasks, IQM 1.50")
+    assert tables.target(runs, "ppo", {})[0].startswith("- opr-e2e: above ppo on 1 of 1 tasks, IQM 1.50")
     # a run with no evaluation within the baseline's CPU time: no IQM at that time rather than a nan counted as a loss
     late = {"A": {"ppo": [scored(100.0)] * 2, "opr-e2e": [scored(150.0, cpu=3.0)] * 2}}
-    assert campaign_report.aggregates(late, "ppo")[0][3].endswith("| — (a run has no evaluation in that time), — |")
+    assert tables.aggregates(late, "ppo")[0][3].endswith("| — (a run has no evaluation in that time), — |")
     # the report says which tasks it left out
     made = {"final_return": 0.0, "eval_cpu_seconds": 0.0, "wall_seconds": 2.0, "eval_wall_seconds": 0.0, "seed": 0,
             "steps_per_cpu_second": 1.0, "steps_per_wall_second": 1.0, "commit": "abc", "machine": "m",
@@ -455,44 +455,44 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
         task: {("opr" if v == "opr-e2e" else v): [{**r, **made} for r in rs] for v, rs in bv.items()}
         for task, bv in runs.items()
     }
-    grid = campaign.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
-    monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [grid]))
-    text = campaign_report.report(["sign"], None, "ppo", 2, None)
+    grid = definitions.Campaign("sb3", ("A", "B"), ("ppo", "opr"), (0,), 1000, eval_freq=1000)
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [grid]))
+    text = engine.report.report(["sign"], None, "ppo", 2, None)
     assert "- Left out of the aggregates and the target: B, where ppo's mean is not positive" in text
     assert "Speed: ppo's env steps per CPU-second (wall-clock beside; evaluations apart)" in text
     zoo = types.SimpleNamespace(**{**vars(grid), "protocol": "zoo", "grid": grid.grid})  # rl-zoo3 times evaluations in
-    monkeypatch.setattr(campaign_report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
-    assert "(wall-clock beside; evaluations included)" in campaign_report.report(["zoo"], None, "ppo", 2, None)
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
+    assert "(wall-clock beside; evaluations included)" in engine.report.report(["zoo"], None, "ppo", 2, None)
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
-    tiny = campaign.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 2)
-    series = campaign.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
+    tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 2)
+    series = training.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
     assert series["timesteps"] == [2000.0, 4000.0, 6000.0]  # every iteration, the last one at the end of training
     assert all(len(series[key]) == 3 and min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after"))
     assert series["vfa_after"] != series["vfa_before"]  # the conventional critic trains beside the run
     by_hand = {"pevfa_before": [1.0, 4.0, 3.0, np.nan], "vfa_before": [2.0, 2.0, 1.0, 1.0],
                "pevfa_after": [1.0, 1.0, 1.0, 1.0], "vfa_after": [3.0, 1.0, 2.0, 1.0]}  # fmt: skip
-    rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
+    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
     assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]  # the iteration with a NaN left out
     # over training: the geometric mean over runs of PeVFA's error / the conventional critic's, smoothed over 3
     other = {**by_hand, "pevfa_before": [4.0, 1.0, 3.0, 2.0], "timesteps": [1.0, 2.0, 3.0, 4.0]}
-    curves = campaign_report.local_generalization_curves([{**by_hand, "timesteps": [1.0, 2.0, 3.0, 4.0]}, other], 3)
+    curves = figures.local_generalization_curves([{**by_hand, "timesteps": [1.0, 2.0, 3.0, 4.0]}, other], 3)
     # per iteration: sqrt(0.5 * 2), sqrt(2 * 0.5), sqrt(3 * 3), 2 (the NaN left out)
     np.testing.assert_allclose(curves["before"], [1.0, np.exp(np.log(3) / 3), np.exp(np.log(6) / 3), 6**0.5])
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
-    np.testing.assert_allclose(campaign_report.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
+    np.testing.assert_allclose(figures.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
     # a run that went on from a checkpoint restarted its conventional critic: left out of the diagnostic
     resumed = {"local_generalization": other, "resumed_from": 2000}
-    rows = campaign_report.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed]}})
+    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed]}})
     assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]
 
 
 def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
-    tiny = campaign.Campaign("paper", (TASK,), ("opr-e2e",), (0,), 8000, 2000, 1)
+    tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e",), (0,), 8000, 2000, 1)
     folder = tmp_path / "checkpoint"
-    evaluate = campaign.evaluate_policy
+    evaluate = training.evaluate_policy
 
     def stopped_at_6000(model, *args, **kwargs):
         if model.num_timesteps == 6000 and not (folder / "stopped").exists():
@@ -503,17 +503,17 @@ def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
             raise KeyboardInterrupt  # the worker ends mid-rollout
         return evaluate(model, *args, **kwargs)
 
-    monkeypatch.setattr(campaign, "evaluate_policy", stopped_at_6000)
+    monkeypatch.setattr(training, "evaluate_policy", stopped_at_6000)
     start = time.process_time()
     with pytest.raises(KeyboardInterrupt):
-        campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+        training.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
     first_cpu = time.process_time() - start
     state = json.loads((folder / "state.json").read_text())
     assert (
         state["timesteps"] == 4000 and state["curve"]["steps"] == [2000, 4000] and state["n_policies"] == 3
     )  # the third recorded as its rollout starts
     start = time.process_time()
-    result = campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
+    result = training.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=4000)
     resumed_cpu = time.process_time() - start
     counted = result["cpu_seconds"] + result["eval_cpu_seconds"]  # without the segment lost after the checkpoint
     assert state["cpu"] + state["eval_cpu"] < counted <= first_cpu - 2.0 + resumed_cpu
@@ -526,24 +526,24 @@ def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
 
 def test_a_zoo_campaign_trains_through_rl_zoo3_on_one_hyperparameter_file():
     conf = "benchmarks/hyperparams/learning.yml"
-    tiny = campaign.Campaign("zoo", (TASK,), ("ppo", "pevfa-opr"), (0,), 2048, 1024, 2, conf)
-    result = campaign.train(tiny, TASK, "pevfa-opr", 0)
+    tiny = definitions.Campaign("zoo", (TASK,), ("ppo", "pevfa-opr"), (0,), 2048, 1024, 2, conf)
+    result = training.train(tiny, TASK, "pevfa-opr", 0)
     assert result["curve"]["steps"] == [1024, 2048] and result["timesteps"] == 2048
     assert f"--algo ppo_pevfa --env {TASK} --seed 0 -n 2048 -conf {conf}" in result["arguments"]["command"]
     assert result["curve"]["cpu_s"] == [result["cpu_seconds"] / 2, result["cpu_seconds"]]  # prorated by steps
     assert result["training_log"]["time/total_timesteps"][-1] == 2048 and result["max_average_return"] > 0
     with pytest.raises(ValueError, match="only protocol 'zoo' takes a conf"):
-        campaign.Campaign("paper", (TASK,), ("ppo",), (0,), 2048, 1024, 2, conf)
+        definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 2048, 1024, 2, conf)
     with pytest.raises(ValueError, match="No hyperparameter file"):
-        campaign.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/none.yml")
+        definitions.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/none.yml")
     # the file's content belongs to the stored definition: an edited file is another protocol
-    assert tiny.definition()["settings"]["ppo conf"] and "conf" not in campaign.CAMPAIGNS["table1"].definition()
+    assert tiny.definition()["settings"]["ppo conf"] and "conf" not in definitions.CAMPAIGNS["table1"].definition()
 
 
 def test_an_authors_protocol_trial_trains_on_their_env_evaluates_sampled_actions_and_resumes(tmp_path, monkeypatch):
-    tiny = campaign.Campaign("authors", (TASK,), ("opr-e2e",), (0,), 6000, 2000, 2)
+    tiny = definitions.Campaign("authors", (TASK,), ("opr-e2e",), (0,), 6000, 2000, 2)
     seen = []
-    evaluate = campaign.evaluate_policy
+    evaluate = training.evaluate_policy
 
     def recorded(model, env, *args, deterministic=True, **kwargs):
         seen.append((deterministic, env.observation_space.shape, model.num_timesteps))
@@ -552,13 +552,13 @@ def test_an_authors_protocol_trial_trains_on_their_env_evaluates_sampled_actions
             raise KeyboardInterrupt  # the worker ends after its checkpoint at the first iteration past 2000 steps
         return evaluate(model, env, *args, deterministic=deterministic, **kwargs)
 
-    monkeypatch.setattr(campaign, "evaluate_policy", recorded)
+    monkeypatch.setattr(training, "evaluate_policy", recorded)
     folder = tmp_path / "checkpoint"
     with pytest.raises(KeyboardInterrupt):
-        campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
+        training.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
     state = json.loads((folder / "state.json").read_text())
     assert 2000 <= state["timesteps"] < 4000  # iterations of whole episodes: the checkpoint at an episode's end
-    result = campaign.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
+    result = training.train(tiny, TASK, "opr-e2e", 0, checkpoint=folder, checkpoint_freq=2000)
     # InvertedPendulum's 4 state variables and the time feature; every evaluation samples actions
     assert {(deterministic, shape) for deterministic, shape, _ in seen} == {(False, (5,))}
     assert result["curve"]["steps"] == [2000, 4000, 6000] and result["resumed_from"] == state["timesteps"]

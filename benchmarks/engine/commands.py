@@ -1,0 +1,166 @@
+"""The command lines of the scripts in ``benchmarks/``, each script's docstring its help: ``campaign.py`` (run, work,
+status), ``campaign_report.py``, ``learning.py`` (zoo runs scheduled as a campaign, each written as a JSON record, and
+their report) and ``training_logs.py``."""
+
+import argparse
+import hashlib
+import json
+import os
+import pathlib
+
+import optuna
+
+from . import training_logs, zoo_report
+from .definitions import CAMPAIGNS, VARIANTS, ZOO_VARIANTS, Campaign
+from .report import report
+from .results import status
+from .storage import open_study, storage_of
+from .workers import run, work
+from .zoo import run_name
+
+#: ``--storage`` of the campaign commands
+STORAGE_HELP = "database URL or journal file (default: benchmarks/campaigns/)"
+
+
+def parser_of(description: str | None) -> argparse.ArgumentParser:
+    """A command line's parser, its help the script's docstring as written."""
+    return argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def campaign_main(argv: list[str] | None = None, description: str | None = None) -> None:
+    """``campaign.py run|work|status``: a new campaign's definition stored first, where one is given."""
+    parser = parser_of(description)
+    parser.add_argument("command", choices=["run", "work", "status"])
+    parser.add_argument("--campaign", nargs="+", required=True,
+                        help=f"campaigns, run in this order: of {sorted(CAMPAIGNS)}, or a new name")  # fmt: skip
+    parser.add_argument("--storage", default=None, help=STORAGE_HELP)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: the cores)")
+    parser.add_argument("--stale-after", type=float, default=1800.0,
+                        help="journal storage: a RUNNING trial of another machine without a heartbeat for this "
+                             "many seconds is failed and enqueued again (here: once its process is gone)")  # fmt: skip
+    new = parser.add_argument_group("a new campaign's definition (stored in its study when it is created)")
+    new.add_argument("--protocol", choices=sorted(VARIANTS))
+    new.add_argument("--tasks", nargs="+")
+    new.add_argument("--variants", nargs="+")
+    new.add_argument("--seeds", nargs="+", type=int)
+    new.add_argument("--timesteps", type=int)
+    new.add_argument("--eval-freq", type=int, default=20_000)
+    new.add_argument("--eval-episodes", type=int, default=10)
+    new.add_argument("--conf", help="protocol zoo: the rl-zoo3 hyperparameter file of every variant (in the repository)")
+    args = parser.parse_args(argv)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    if args.protocol or args.tasks or args.variants or args.seeds or args.timesteps:
+        missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
+        if missing:
+            parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
+        given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
+                         args.eval_freq, args.eval_episodes, args.conf)  # fmt: skip
+        if len(args.campaign) > 1:
+            parser.error("define one campaign at a time")
+        open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
+    if args.command == "run":
+        run(args.campaign, args.storage, args.workers, args.stale_after)
+    elif args.command == "work":
+        work(args.campaign, args.storage, args.stale_after)
+    else:
+        status(args.campaign, args.storage, args.workers)
+
+
+def campaign_report_main(argv: list[str] | None = None, description: str | None = None) -> None:
+    """``campaign_report.py``: the report printed, and written with its figures to ``--out``."""
+    parser = parser_of(description)
+    parser.add_argument("--campaign", nargs="+", required=True)
+    parser.add_argument("--storage", default=None, help=STORAGE_HELP)
+    parser.add_argument("--baseline", default="ppo", help="the variant every ratio is to")
+    parser.add_argument("--workers", type=int, default=2, help="cores the expected duration is for")
+    parser.add_argument("--out", type=pathlib.Path, default=None, help="write report.md and curves.png in this folder")
+    args = parser.parse_args(argv)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    png = args.out / "curves.png" if args.out else None
+    text = report(args.campaign, args.storage, args.baseline, args.workers, png)
+    if args.out:
+        (args.out / "report.md").write_text(text)
+    print(text)
+
+
+def learning_main(argv: list[str] | None = None, description: str | None = None) -> None:
+    """``learning.py``: the runs without a record in ``--out`` trained (``schedule``), unless ``--report``; the report."""
+    parser = parser_of(description)
+    parser.add_argument("--env", nargs="+", default=["Hopper-v5", "Walker2d-v5"])
+    parser.add_argument("--variants", nargs="+", default=["ppo", "pevfa-opr"], choices=list(ZOO_VARIANTS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
+    parser.add_argument("--timesteps", type=int, default=300_000)
+    parser.add_argument("--eval-freq", type=int, default=20_000)
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="runs at a time (default: the cores)")
+    parser.add_argument("--conf", type=pathlib.Path, default=None, help="rl-zoo3 hyperparameters shared by all variants")
+    parser.add_argument("--baseline", default="ppo", choices=list(ZOO_VARIANTS), help="the variant the report compares to")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/learning"))
+    parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
+    parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
+    parser.add_argument(
+        "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
+    )
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if not args.report:
+        schedule(args)
+    print(zoo_report.report(args.out, args.baseline, args.paired))
+    if args.plot is not None:
+        zoo_report.plot(args.out, args.plot)
+        zoo_report.plot_profiles(args.out, args.plot.with_name(f"{args.plot.stem}_profile.png"), args.baseline, args.paired)
+
+
+def schedule(args: argparse.Namespace) -> None:
+    """The requested runs without a JSON in ``--out``, as a campaign of protocol zoo (the study named by its
+    definition, in ``<out>/campaign.journal``), then every finished run of it written to ``--out``."""
+    missing = [(t, v, s) for t in args.env for v in args.variants for s in args.seeds
+               if not (args.out / f"{run_name(t, v, s)}.json").exists()]  # fmt: skip
+    if not missing:
+        return
+    conf = None if args.conf is None else str(args.conf.resolve())
+    grid = Campaign("zoo", *(tuple(dict.fromkeys(p[i] for p in missing)) for i in range(3)), args.timesteps,
+                    args.eval_freq, args.eval_episodes, conf)  # fmt: skip
+    digest = hashlib.sha1(json.dumps(grid.definition(), sort_keys=True).encode()).hexdigest()[:10]
+    name, journal = f"learning-{digest}", str(args.out / "campaign.journal")
+    study, _ = open_study(name, storage_of(name, journal), grid)
+    try:
+        run([name], journal, args.workers, stale_after=1800.0)
+    finally:
+        export(study, args.out)
+
+
+def export(study: optuna.Study, out: pathlib.Path) -> None:
+    """Every complete trial's run as ``<out>/<run>.json`` and its training tables as ``<out>/logs/<run>.json``."""
+    for trial in study.get_trials(deepcopy=False):
+        record = trial.user_attrs.get("zoo_run")
+        if trial.state.name != "COMPLETE" or record is None:
+            continue
+        name = run_name(record["env"], record["variant"], record["seed"])
+        if not (out / f"{name}.json").exists():
+            (out / f"{name}.json").write_text(json.dumps(record, indent=1))
+            (out / "logs").mkdir(exist_ok=True)
+            (out / "logs" / f"{name}.json").write_text(json.dumps(trial.user_attrs["training_log"]))
+
+
+def training_logs_main(argv: list[str] | None = None, description: str | None = None) -> None:
+    """``training_logs.py``: the logs of ``--out``'s runs kept compactly, then each env's report."""
+    parser = parser_of(description)
+    parser.add_argument("--out", type=pathlib.Path, required=True, help="a benchmarks/learning.py result folder")
+    parser.add_argument("--env", nargs="+", default=["Hopper-v5"])
+    parser.add_argument("--plot", type=pathlib.Path, default=None)
+    parser.add_argument(
+        "--windows",
+        type=int,
+        nargs="+",
+        default=None,
+        help="also the signals per window of env steps, given by the windows' upper ends (e.g. 100000 200000 300000)",
+    )
+    args = parser.parse_args(argv)
+    training_logs.collect(args.out)
+    for env_id in args.env:
+        print(training_logs.report(args.out, env_id), end="\n\n")
+        if args.windows:
+            print(training_logs.window_report(args.out, env_id, args.windows), end="\n\n")
+    if args.plot is not None:
+        training_logs.plot(args.out, args.env, args.plot)

@@ -1,0 +1,100 @@
+"""The report's figures: learning curves per env step and per CPU-second with the performance profile (one PNG, a
+column per task), and the local-generalization diagnostic over training."""
+
+import pathlib
+import warnings
+
+import numpy as np
+
+from . import aggregate
+from .results import Runs
+from .tables import compared_variants, diagnosed
+
+
+def local_generalization_curves(series: list[dict[str, list[float]]], window: int = 25) -> dict[str, np.ndarray]:
+    """A task's diagnostic runs, per iteration (runs aligned by iteration): the env steps and, before and after the
+    critic update, the PeVFA's error over the conventional critic's, as a geometric mean over runs smoothed by a
+    centered moving geometric mean over ``window`` iterations (non-finite errors left out)."""
+    n = min(len(s["timesteps"]) for s in series)
+    curves = {"steps": np.asarray(series[0]["timesteps"][:n], float)}
+    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the mean of an all-NaN slice is NaN
+        for when in ("before", "after"):
+            logs = np.log(np.array([np.asarray(s[f"pevfa_{when}"][:n], float) / np.asarray(s[f"vfa_{when}"][:n], float)
+                                    for s in series]))  # fmt: skip
+            logs[~np.isfinite(logs)] = np.nan
+            per_iteration = np.nanmean(logs, axis=0)
+            first = [i - window // 2 for i in range(n)]  # each window: ``window`` iterations around i, cut at the ends
+            curves[when] = np.exp([np.nanmean(per_iteration[max(0, f) : f + window]) for f in first])
+    return curves
+
+
+def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:
+    """One panel per task with diagnostic runs: PeVFA's error / the conventional critic's over training."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(task, variant, diagnosed(variant_runs))
+              for task, by_variant in runs.items() for variant, variant_runs in by_variant.items()]  # fmt: skip
+    panels = [panel for panel in panels if panel[2]]
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
+    for ax, (task, variant, series) in zip(axes[0], panels):
+        curves = local_generalization_curves(series)
+        ax.plot(curves["steps"] / 1e6, curves["before"], label="before the critic update")
+        ax.plot(curves["steps"] / 1e6, curves["after"], "--", label="after")
+        ax.axhline(1.0, color="grey", linewidth=0.8)
+        ax.set(yscale="log", xlabel="env steps (M)", title=f"{task}, {variant} ({len(series)} runs)")
+        ax.title.set_fontsize(9)
+    axes[0][0].set_ylabel("PeVFA's error / conventional critic's")
+    axes[0][0].legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(png, dpi=80)
+    plt.close(figure)
+
+
+def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(runs)
+    figure, axes = plt.subplots(2, len(tasks) + 1, figsize=(3.4 * (len(tasks) + 1), 6.0), squeeze=False)
+    colors = {}
+    compared = compared_variants(runs)  # the diagnostic's runs are slower by their extra critic
+    for column, task in enumerate(tasks):
+        for variant, variant_runs in runs[task].items():
+            if variant not in compared:
+                continue
+            color = colors.setdefault(variant, f"C{len(colors)}")
+            n = min(len(r["curve"]["mean"]) for r in variant_runs)
+            means = np.array([r["curve"]["mean"][:n] for r in variant_runs])
+            steps = np.array(variant_runs[0]["curve"]["steps"][:n])
+            cpu = np.mean([r["curve"]["cpu_s"][:n] for r in variant_runs], axis=0) / 60
+            for row, x in enumerate((steps / 1e6, cpu)):
+                ax = axes[row][column]
+                ax.plot(x, means.mean(0), color=color, label=f"{variant} ({len(variant_runs)})")
+                ax.fill_between(x, means.mean(0) - means.std(0) / 2, means.mean(0) + means.std(0) / 2, color=color, alpha=0.2)
+        axes[0][column].set_title(task, fontsize=9)
+        axes[0][column].set_xlabel("env steps (M)")
+        axes[1][column].set_xlabel("training CPU minutes")
+        axes[0][column].legend(fontsize=7)
+    axes[0][0].set_ylabel("evaluation return (mean ± half std)")
+    axes[1][0].set_ylabel("evaluation return (mean ± half std)")
+    taus = np.linspace(0, 2.5, 101)
+    ax = axes[0][-1]
+    for variant, scores in normalized.items():
+        low, high = aggregate.profile_band(scores, taus)
+        ax.plot(taus, aggregate.performance_profile(scores, taus), color=colors.get(variant), label=variant)
+        ax.fill_between(taus, low, high, color=colors.get(variant), alpha=0.2)
+    ax.set_title("performance profile", fontsize=9)
+    ax.set_xlabel("max average return / baseline's mean")
+    ax.set_ylabel("fraction of runs above")
+    ax.legend(fontsize=7)
+    axes[1][-1].axis("off")
+    figure.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png, dpi=80)
+    plt.close(figure)

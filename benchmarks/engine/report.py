@@ -1,0 +1,101 @@
+"""The report of learning campaigns, from their storage alone (no rerun): the tables (``tables``) in one markdown
+text, the figures (``figures``) beside it."""
+
+import pathlib
+
+import numpy as np
+
+from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
+
+from .figures import plot, plot_local_generalization
+from .results import collect, expected_duration
+from .tables import (
+    ORDER,
+    PAPER_TABLE1,
+    TARGET,
+    aggregates,
+    comparable,
+    local_generalization,
+    speed,
+    table,
+    target,
+    training_signals,
+)
+
+#: Protocols whose reports stand beside the paper's Table 1 and its target: what each one's deviations are from
+PUBLISHED = {"paper": ("the paper", PAPER_DEVIATIONS), "authors": ("the authors' code", AUTHORS_DEVIATIONS)}
+
+
+def report(names: list[str], storage: str | None, baseline: str, workers: int, png: pathlib.Path | None) -> str:
+    runs, progress, notes, campaigns = collect(names, storage)
+    protocols = {c.protocol for c in campaigns}
+    paper = len(protocols) == 1 and protocols <= set(PUBLISHED)
+    complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
+    total = sum(len(c.grid) for c in campaigns)
+    lines = [f"Campaigns {', '.join(names)}: {complete} of {total} runs complete.", ""]
+    if not runs:
+        return "\n".join(lines)
+    commits = sorted({r["commit"] for bv in runs.values() for rs in bv.values() for r in rs})
+    machines = sorted({r["machine"] for bv in runs.values() for rs in bv.values() for r in rs})
+    made = [r for bv in runs.values() for rs in bv.values() for r in rs]
+    versions = {name: "/".join(sorted({str(r["versions"].get(name, "?")) for r in made})) for name in made[0]["versions"]}
+    flipped = [t for t, bv in runs.items() if bv.get(baseline) and t not in comparable(runs, baseline, baseline)]
+    if flipped:
+        notes.append(f"Left out of the aggregates and the target: {', '.join(flipped)}, where {baseline}'s mean is not "
+                     "positive (a ratio to it would reverse the order of the scores)")  # fmt: skip
+    steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
+    beside = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
+    aggregate_lines, normalized = aggregates(runs, baseline)
+    zoo = [c for c in campaigns if c.protocol == "zoo"]  # an rl-zoo3 training times its evaluations with itself
+    apart = "apart" if not zoo else "included" if len(zoo) == len(campaigns) else "apart, included in protocol zoo's runs"
+    sections = [
+        [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
+         f"ratio to {baseline}'s mean{beside}:"],
+        table(runs, baseline, paper),
+        [f"Over tasks: each run's max average return / {baseline}'s mean on its task (95 % stratified-bootstrap CIs "
+         f"over the seeds of both); at {baseline}'s CPU time: its best return within {baseline}'s mean training CPU "
+         "time (same task and machine):"],
+        aggregate_lines,
+    ]  # fmt: skip
+    if paper:
+        planned: dict[str, int] = {}
+        for c in campaigns:
+            for variant in c.variants:
+                planned[variant] = planned.get(variant, 0) + len(c.tasks) * len(c.seeds)
+        sections += [[f"Against the target for {TARGET['variant']} (above {baseline}'s mean on at least {TARGET['tasks']} "
+                      f"of Table 1's 6 tasks, IQM at least {TARGET['iqm']} with the CI's lower bound above {TARGET['low']}):"],
+                     target(runs, baseline, planned)]  # fmt: skip
+        ratios = {v: np.mean([PAPER_TABLE1[t][v][0] / PAPER_TABLE1[t]["ppo"][0] for t in PAPER_TABLE1]) for v in ORDER[1:5]}
+        sections.append(
+            ["The paper's ratios to its PPO, mean over its six tasks: " + ", ".join(f"{v} {r:.2f}" for v, r in ratios.items())]
+        )
+    sections += [
+        [f"Speed: {baseline}'s env steps per CPU-second (wall-clock beside; evaluations {apart}), CPU minutes per run; "
+         f"each variant's speed (wall) and best return within {baseline}'s CPU time as ratios, its CPU minutes:"],
+        speed(runs, baseline),
+        [expected_duration(runs, progress, campaigns, workers)],
+    ]  # fmt: skip
+    diagnostic = local_generalization(runs)
+    if diagnostic:
+        sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error on each new policy's "
+                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (over training: "
+                      "local_generalization.png); its runs are in the first table only (the extra critic costs time):"],
+                     diagnostic]  # fmt: skip
+    signals = training_signals(runs)
+    if signals:
+        sections += [["Training signals from SB3's logs (mean over each run's last third of iterations, then over "
+                      "runs): the on-policy critic's explained variance, the PeVFA's loss on historical samples, "
+                      "the norm of the value's gradient in chi (does the critic read chi?), chi's norm and its "
+                      "share of saturated units:"], signals]  # fmt: skip
+    if paper:
+        source, deviations = PUBLISHED[protocols.pop()]
+        sections += [[f"Deviations from {source}:"], [f"- {d}" for d in deviations]]
+    libraries = ", ".join(f"{name} {versions[name]}" for name in ("torch", "stable_baselines3", "gymnasium", "mujoco"))
+    sections.append([f"Runs made at commits {', '.join(commits)} on {', '.join(machines)}; {libraries}."])
+    sections.append([f"- {note}" for note in notes])
+    lines += [line for section in sections if section for line in (*section, "")]
+    if png is not None:
+        plot(runs, png, normalized)
+        if diagnostic:
+            plot_local_generalization(runs, png.with_name("local_generalization.png"))
+    return "\n".join(lines).rstrip() + "\n"

@@ -1,0 +1,131 @@
+"""What a campaign's storage holds, for the report and the status: each grid point's completed runs (their trials'
+user attributes), the progress of running trials, notes on failed or duplicated grid points, and the time the
+campaigns take and have left."""
+
+from typing import Any
+
+import numpy as np
+from optuna.trial import TrialState
+
+from .definitions import Campaign
+from .storage import deaths, done, grid_states, open_study, retried_enough, storage_of
+
+#: task -> variant -> the user attributes of its completed runs, one per seed
+Runs = dict[str, dict[str, list[dict[str, Any]]]]
+
+
+def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str], list[Campaign]]:
+    """task -> variant -> the completed runs' user attributes (one per seed: a grid point's first complete trial),
+    (task, variant) -> the progress of running trials, the notes on failed or duplicated grid points, and the
+    campaigns. Variants are named ``protocol:variant`` where the campaigns mix protocols."""
+    names = list(dict.fromkeys(names))  # a campaign named twice counts once
+    runs: Runs = {}
+    progress: dict[tuple[str, str], list[dict[str, float]]] = {}
+    notes, campaigns, resumed = [], [], []
+    studies = [open_study(name, storage_of(name, storage)) for name in names]
+    mixed = len({campaign.protocol for _, campaign in studies}) > 1
+    for study, campaign in studies:
+        campaigns.append(campaign)
+        by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
+        for (task, variant, seed), trials in grid_states(study, campaign).items():
+            label = f"{campaign.protocol}:{variant}" if mixed else variant
+            complete = [t for t in trials if t.state == TrialState.COMPLETE]
+            running = [
+                {**t.user_attrs["progress"], "seed": seed}
+                for t in trials
+                if t.state == TrialState.RUNNING and "progress" in t.user_attrs
+            ]
+            progress.setdefault((task, label), []).extend(running)
+            if complete:
+                runs.setdefault(task, {}).setdefault(label, []).append({**complete[0].user_attrs, "seed": seed})
+                if complete[0].user_attrs.get("resumed_from"):
+                    resumed.append(f"{task} {label} {seed} ({complete[0].user_attrs['resumed_from']:,})")
+                if len(complete) > 1:
+                    notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
+            elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
+                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+            elif trials and retried_enough(trials[-1], by_number):
+                died = f"trial {trials[-1].number}'s worker died {deaths(trials[-1], by_number)} times"
+                notes.append(f"{task} {label} seed {seed}: {died}: not retried again")
+    if resumed:
+        notes.insert(0, f"Went on from a checkpoint (task, variant, seed, at env step): {', '.join(resumed)}")
+    order = list(dict.fromkeys(task for campaign in campaigns for task in campaign.tasks))
+    return {task: runs[task] for task in order if task in runs}, progress, notes, campaigns
+
+
+def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
+    """The campaigns' CPU time and the wall-clock time left (a running trial's less its training so far). A run's
+    time per task and variant: the completed runs' mean, else extrapolated from running trials' progress (training
+    only), else scaled from another variant's time on the task by the two variants' ratio where both ran, else the
+    variant's mean; grid points with none are counted apart."""
+    times: dict[tuple[str, str], np.ndarray] = {}  # (CPU, wall-clock) seconds per run
+    for task, by_variant in runs.items():
+        for variant, variant_runs in by_variant.items():
+            cpu = np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in variant_runs])
+            wall = np.mean([r["wall_seconds"] + r["eval_wall_seconds"] for r in variant_runs])
+            times[task, variant] = np.array([cpu, wall])
+    mixed = len({c.protocol for c in campaigns}) > 1
+    points = [
+        (c, (task, f"{c.protocol}:{variant}" if mixed else variant), seed) for c in campaigns for task, variant, seed in c.grid
+    ]
+    for campaign, key, _ in points:
+        if key not in times and progress.get(key):
+            measured = np.mean([(p["cpu_s"], p["wall_s"]) for p in progress[key]], 0)
+            times[key] = measured / np.mean([p["steps"] for p in progress[key]]) * campaign.timesteps
+    total = remaining = 0.0
+    unknown = 0
+    for _, key, seed in points:
+        time = times[key] if key in times else scaled_time(times, key)
+        elapsed = max([p["wall_s"] for p in progress.get(key, []) if p.get("seed") == seed], default=0.0)
+        done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
+        if time is None:
+            unknown += not done
+            continue
+        total += time[0]
+        remaining += 0.0 if done else max(time[1] - elapsed, 0.0)  # a running trial: what it has left
+    if not remaining and not unknown:
+        return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
+    text = (f"Expected duration: about {total / 3600:.1f} CPU-hours in all, {remaining / 3600 / workers:.1f} wall-clock hours "
+            f"left on {workers} workers (from the runs' mean times per task and variant, else running trials' "
+            "progress, else other variants' times scaled by their ratio).")  # fmt: skip
+    if unknown:
+        text += f" Not counted: {unknown} runs of variants with no run yet."
+    return text
+
+
+def scaled_time(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) -> np.ndarray | None:
+    """A variant's time on a task: another variant's time there times their mean ratio on the tasks where both ran,
+    else the variant's mean over the tasks where it ran; None where the variant has no time yet."""
+    task, variant = key
+    own = [k for k in times if k[1] == variant]
+    estimates = [
+        times[task, other] * np.mean([times[t, variant] / times[t, other] for t, _ in own if (t, other) in times], 0)
+        for t_, other in times
+        if t_ == task and any((t, other) in times for t, _ in own)
+    ]
+    if estimates:
+        return np.mean(estimates, 0)
+    return np.mean([times[k] for k in own], 0) if own else None
+
+
+def status(names: list[str], storage: str | None, workers: int) -> None:
+    """Each grid point's trials, then the campaigns' expected duration (the report's estimate)."""
+    for name in names:
+        status_of(name, storage)
+    runs, progress, _, campaigns = collect(names, storage)
+    print(expected_duration(runs, progress, campaigns, workers))
+
+
+def status_of(name: str, storage: str | None) -> None:
+    """A campaign's grid points complete, its trials by state, and each grid point's trials."""
+    study, campaign = open_study(name, storage_of(name, storage))
+    counts: dict[str, int] = {}
+    for trial in study.get_trials(deepcopy=False):
+        counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
+    print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
+    for (task, variant, seed), trials in grid_states(study, campaign).items():
+        states = " ".join(
+            f"#{t.number}:{t.state.name}" + (f" (max average return {t.value:.0f})" if t.value is not None else "")
+            for t in trials
+        )
+        print(f"  {task:28s} {variant:26s} seed {seed}: {states or '-'}")

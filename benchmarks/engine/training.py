@@ -1,0 +1,291 @@
+"""One training of a grid point, as a trial runs it: its evaluation curve with the training's CPU and wall-clock time
+(evaluations and checkpoints apart), its checkpoints, and what the trial stores (the curve, the times, the resolved
+arguments and the provenance). Protocol zoo trains through rl-zoo3 instead (``zoo.run``, a process of its own)."""
+
+import argparse
+import contextlib
+import functools
+import inspect
+import json
+import os
+import pathlib
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from collections.abc import Iterator
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import optuna
+import stable_baselines3 as sb3
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import KVWriter, Logger
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
+
+from . import zoo
+from .definitions import ENV_MAKERS, LOCAL_GENERALIZATION, ROOT, STOCHASTIC_EVALUATION, VARIANTS, Campaign
+from .training_logs import parse_log
+
+#: Env steps between two checkpoints of a running trial
+CHECKPOINT_FREQ = 100_000
+#: The evaluation env of seed s is seeded with s + this (the training env with s)
+EVAL_SEED_OFFSET = 10_000
+
+
+class CurveCallback(BaseCallback):
+    """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` episodes (SB3's ``evaluate_policy``;
+    deterministic actions unless ``deterministic=False``), records the training's CPU and wall-clock seconds so far
+    (evaluations and checkpoints apart), and reports the mean return to the Optuna trial, with a heartbeat. With a
+    ``checkpoint`` folder, it saves the model, its history and its own state there at the first iteration boundary
+    after every ``checkpoint_freq`` env steps; ``state`` is such a saved state, to go on from."""
+
+    def __init__(
+        self,
+        eval_env: VecEnv,
+        trial: optuna.Trial | None,
+        eval_freq: int,
+        n_eval_episodes: int,
+        checkpoint: pathlib.Path | None = None,
+        checkpoint_freq: int = 0,
+        state: dict[str, Any] | None = None,
+        deterministic: bool = True,
+    ):
+        super().__init__()
+        self.deterministic = deterministic
+        self.eval_env, self.trial, self.eval_freq, self.n_eval_episodes = eval_env, trial, eval_freq, n_eval_episodes
+        self.checkpoint, self.checkpoint_freq = checkpoint, checkpoint_freq
+        state = state or {}
+        self.curve: dict[str, list[float]] = state.get("curve", {k: [] for k in ("steps", "mean", "std", "cpu_s", "wall_s")})
+        self.before = {key: state.get(key, 0.0) for key in ("cpu", "wall", "eval_cpu", "eval_wall")}
+        self.segment_eval_cpu = self.segment_eval_wall = 0.0
+        self.start_cpu, self.start_wall = time.process_time(), time.perf_counter()
+        self.next_checkpoint = (state.get("timesteps", 0) // checkpoint_freq + 1) * checkpoint_freq if checkpoint_freq else 0
+
+    @property
+    def eval_cpu(self) -> float:
+        return self.before["eval_cpu"] + self.segment_eval_cpu
+
+    @property
+    def eval_wall(self) -> float:
+        return self.before["eval_wall"] + self.segment_eval_wall
+
+    def training_time(self) -> tuple[float, float]:
+        """CPU and wall-clock seconds of training so far, over every segment of the run."""
+        cpu = self.before["cpu"] + time.process_time() - self.start_cpu - self.segment_eval_cpu
+        return cpu, self.before["wall"] + time.perf_counter() - self.start_wall - self.segment_eval_wall
+
+    @contextlib.contextmanager
+    def apart(self) -> Iterator[None]:
+        """Time spent inside is not training time."""
+        cpu, wall = time.process_time(), time.perf_counter()
+        yield
+        self.segment_eval_cpu += time.process_time() - cpu
+        self.segment_eval_wall += time.perf_counter() - wall
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps % self.eval_freq:
+            return True
+        train_cpu, train_wall = self.training_time()
+        with self.apart():
+            returns, _ = evaluate_policy(
+                self.model, self.eval_env, self.n_eval_episodes, deterministic=self.deterministic, return_episode_rewards=True
+            )
+        returns = np.asarray(returns, dtype=float)
+        point = (self.num_timesteps, float(returns.mean()), float(returns.std()), train_cpu, train_wall)
+        for key, value in zip(self.curve, point):
+            self.curve[key].append(value)
+        if self.trial is not None:
+            self.trial.report(point[1], self.num_timesteps)
+            self.trial.set_user_attr("heartbeat", time.time())
+            self.trial.set_user_attr("progress", {"steps": self.num_timesteps, "cpu_s": train_cpu, "wall_s": train_wall})
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if self.checkpoint is None or not self.checkpoint_freq or self.num_timesteps < self.next_checkpoint:
+            return
+        with self.apart():
+            save_checkpoint(self.checkpoint, self.model, self.state())
+        self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+
+    def state(self) -> dict[str, Any]:
+        cpu, wall = self.training_time()
+        return {"timesteps": self.num_timesteps, "curve": self.curve, "cpu": cpu, "wall": wall,
+                "eval_cpu": self.eval_cpu, "eval_wall": self.eval_wall}  # fmt: skip
+
+
+def save_checkpoint(folder: pathlib.Path, model: PPO, state: dict[str, Any]) -> None:
+    """The model, its history and ``state``, each file replaced whole (a kill leaves the previous one or the new one;
+    the state, written last, names the steps the model must have)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(folder / "model.tmp.zip")
+    os.replace(folder / "model.tmp.zip", folder / "model.zip")
+    if isinstance(model, PPOPeVFA):
+        model.save_history(folder / "history.tmp.npz")
+        os.replace(folder / "history.tmp.npz", folder / "history.npz")
+        state = {**state, "n_policies": model.history.n_policies}
+    (folder / "state.tmp.json").write_text(json.dumps(state))
+    os.replace(folder / "state.tmp.json", folder / "state.json")
+
+
+def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together."""
+    if folder is None or not (folder / "state.json").exists():
+        return None
+    state = json.loads((folder / "state.json").read_text())
+    algorithm = PPO if VARIANTS[protocol][variant] is None else PPOPeVFA
+    model = algorithm.load(folder / "model.zip", env=env)
+    if isinstance(model, PPOPeVFA):
+        model.load_history(folder / "history.npz")
+        if model.history.n_policies != state["n_policies"]:
+            return None
+    return (model, state) if model.num_timesteps == state["timesteps"] else None
+
+
+def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
+    """The model of one grid point (``VARIANTS``)."""
+    arguments = VARIANTS[protocol][variant]
+    if arguments is None:
+        return PPO("MlpPolicy", env, seed=seed)
+    return PPOPeVFA("MlpPolicy", env, seed=seed, **arguments)
+
+
+def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None,
+          checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ) -> dict[str, Any]:  # fmt: skip
+    """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
+    goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
+    env steps; the folder is removed when the run is complete."""
+    if campaign.protocol == "zoo":
+        return train_through_the_zoo(campaign, task, variant, seed, trial)
+    th.set_num_threads(1)
+    make_env = ENV_MAKERS.get(campaign.protocol, functools.partial(make_vec_env, n_envs=1))
+    env = make_env(task, seed=seed)
+    eval_env = make_env(task, seed=seed + EVAL_SEED_OFFSET)
+    with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
+        warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
+        resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)
+        model, state = resumed or (make_model(campaign.protocol, variant, env, seed), {})
+    deterministic = campaign.protocol not in STOCHASTIC_EVALUATION
+    callback = CurveCallback(
+        eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq, state, deterministic
+    )
+    callbacks: list[BaseCallback] = [callback]
+    logged = MemoryOutput()
+    if variant in LOCAL_GENERALIZATION:
+        model.set_logger(Logger(folder=None, output_formats=[logged]))
+        callbacks.append(LocalGeneralizationCallback(**LOCAL_GENERALIZATION[variant]))
+    model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
+    cpu, wall = callback.training_time()
+    curve = callback.curve
+    if checkpoint is not None:
+        shutil.rmtree(checkpoint, ignore_errors=True)
+    env.close()
+    eval_env.close()
+    return {
+        "curve": curve,
+        "max_average_return": max(curve["mean"]),
+        "final_return": curve["mean"][-1],
+        "timesteps": int(model.num_timesteps),
+        "cpu_seconds": cpu,
+        "wall_seconds": wall,
+        "eval_cpu_seconds": callback.eval_cpu,
+        "eval_wall_seconds": callback.eval_wall,
+        "steps_per_cpu_second": model.num_timesteps / cpu,
+        "steps_per_wall_second": model.num_timesteps / wall,
+        "arguments": resolved_arguments(model),
+        "resumed_from": state.get("timesteps", 0),
+        **({"local_generalization": logged.series("pevfa/local_gen/")} if variant in LOCAL_GENERALIZATION else {}),
+        **provenance(),
+    }
+
+
+def train_through_the_zoo(
+    campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None
+) -> dict[str, Any]:
+    """One training through rl-zoo3's entry point (``zoo.run``: its EvalCallback, deterministic episodes), as a
+    process of its own whose CPU time includes its evaluations; each evaluation's CPU time is the run's, prorated by
+    steps, and its wall-clock time comes from the Monitor file."""
+    with tempfile.TemporaryDirectory() as folder:
+        args = argparse.Namespace(conf=campaign.conf_of(variant), eval_freq=campaign.eval_freq,
+                                  eval_episodes=campaign.eval_episodes, out=pathlib.Path(folder))  # fmt: skip
+        line = zoo.run(task, variant, seed, campaign.timesteps, args)
+        name = zoo.run_name(task, variant, seed)
+        if not (args.out / f"{name}.json").exists():
+            raise RuntimeError(f"{line}\n{(args.out / f'{name}.err').read_text()[-3000:]}")
+        run = json.loads((args.out / f"{name}.json").read_text())
+        log = parse_log((args.out / "runs" / name / "output.log").read_text(errors="replace"))
+    points = run["curve"]
+    curve = {"steps": [p["timesteps"] for p in points], "mean": [p["mean_return"] for p in points],
+             "std": [p["std_return"] for p in points], "cpu_s": [zoo.cpu_seconds(run, p) for p in points],
+             "wall_s": [p["wall_s"] for p in points]}  # fmt: skip
+    if trial is not None:
+        for step, mean in zip(curve["steps"], curve["mean"]):
+            trial.report(mean, step)
+    return {
+        "curve": curve,
+        "max_average_return": max(curve["mean"]),
+        "final_return": curve["mean"][-1],
+        "timesteps": run["timesteps"],
+        "cpu_seconds": run["cpu_time_s"],
+        "wall_seconds": run["wall_time_s"],
+        "eval_cpu_seconds": 0.0,  # inside the run's own
+        "eval_wall_seconds": 0.0,
+        "steps_per_cpu_second": run["timesteps"] / run["cpu_time_s"],
+        "steps_per_wall_second": run["timesteps"] / run["wall_time_s"],
+        "arguments": {"command": run["command"], "options": repr(run["options"])},
+        "training_log": log,  # SB3's training tables, compactly (training_logs.parse_log)
+        "zoo_run": run,  # zoo.run's record of the run
+        **provenance(),
+    }
+
+
+class MemoryOutput(KVWriter):
+    """An SB3 logger output that keeps every dumped row in memory."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, Any], step: int = 0) -> None:
+        self.rows.append(dict(key_values))
+
+    def series(self, prefix: str) -> dict[str, list[float]]:
+        """The keys under ``prefix`` (prefix removed), over the rows that log them."""
+        rows = [row for row in self.rows if any(key.startswith(prefix) for key in row)]
+        keys = sorted({key for row in rows for key in row if key.startswith(prefix)})
+        return {key[len(prefix) :]: [float(row.get(key, np.nan)) for row in rows] for key in keys}
+
+
+def resolved_arguments(model: PPO) -> dict[str, str]:
+    """Every constructor argument as the model holds it (class defaults included), as text."""
+    names = inspect.signature(type(model).__init__).parameters
+    values = {name: getattr(model, name) for name in names if name not in ("self", "policy", "env") and hasattr(model, name)}
+    return {name: repr(value) for name, value in values.items()}
+
+
+@functools.cache
+def provenance() -> dict[str, Any]:
+    """The package's commit when this process started (``+dirty`` with uncommitted changes), the library versions and
+    the machine."""
+
+    def git(*args: str) -> str:
+        result = subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT)
+        return result.stdout.strip() if result.returncode == 0 else "unknown"
+
+    commit = git("rev-parse", "--short", "HEAD")
+    if git("status", "--porcelain", "--untracked-files=no", "--", "sb3_pevfa", "benchmarks/campaign.py", "benchmarks/engine"):
+        commit += "+dirty"
+    versions = {"torch": th.__version__, "stable_baselines3": sb3.__version__, "gymnasium": gym.__version__,
+                "mujoco": mujoco.__version__, "optuna": optuna.__version__, "python": sys.version.split()[0]}  # fmt: skip
+    return {"commit": commit, "versions": versions, "machine": f"{socket.gethostname()} ({os.cpu_count()} CPUs)"}

@@ -1,0 +1,148 @@
+"""Workers: each one draws a grid point that no trial holds and trains it as a trial (``training.train``), campaign
+after campaign, then waits while others run the last grid points and takes over any whose worker dies; ``run``
+recovers the trials of dead workers, starts the worker processes (``benchmarks/campaign.py work``) and shows the
+progress."""
+
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import optuna
+from optuna.trial import FrozenTrial, TrialState
+
+from .definitions import ROOT, Campaign
+from .storage import boot_id, done, draw, grid_point, open_study, pending, recover, running, storage_of
+from .training import provenance, train
+
+#: The command line of a worker process (``storage`` knows a live worker by it)
+SCRIPT = ROOT / "benchmarks" / "campaign.py"
+
+
+def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
+    """A trial of ``campaign``: its grid point trained, unless another trial holds it (then pruned as a duplicate)."""
+
+    def run_trial(trial: optuna.Trial) -> float:
+        try:
+            trial.set_user_attr("interrupted", "")
+            task = trial.suggest_categorical("task", list(campaign.tasks))
+            variant = trial.suggest_categorical("variant", list(campaign.variants))
+            seed = trial.suggest_categorical("seed", list(campaign.seeds))
+            point = (task, variant, seed)
+            this = trial.study._storage.get_trial(trial._trial_id)
+            taken = [t for t in trial.study.get_trials(deepcopy=False)
+                     if t.number != trial.number and grid_point(t) == point and _yields(this, t)]  # fmt: skip
+            if taken:  # the grid point is done, or another worker took it at the same moment
+                trial.set_user_attr("duplicate_of", taken[0].number)
+                raise optuna.TrialPruned()
+            trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
+            trial.set_user_attr("heartbeat", time.time())
+            folder = campaign.checkpoint_folder(trial.study.study_name) / f"{task}_{variant}_seed{seed}"
+            result = train(campaign, task, variant, seed, trial, checkpoint=folder)
+            for key, value in result.items():
+                trial.set_user_attr(key, value)
+        except (KeyboardInterrupt, SystemExit):
+            trial.set_user_attr("interrupted", "stopped")
+            raise
+        return result["max_average_return"]
+
+    return run_trial
+
+
+def _yields(trial: FrozenTrial, other: FrozenTrial) -> bool:
+    """Whether ``trial`` leaves its grid point to ``other``, a trial of the same point: to a complete one; a new trial
+    to a retried one, waiting or running (so that the retry of a dead worker's trial runs, once); between two of the
+    same kind, the later to the earlier."""
+    if other.state == TrialState.COMPLETE:
+        return True
+    retried, other_retried = "retry_history" in trial.system_attrs, "retry_history" in other.system_attrs
+    if other.state == TrialState.WAITING:
+        return other_retried and not retried
+    if other.state == TrialState.RUNNING:
+        return other_retried > retried or (other_retried == retried and other.number < trial.number)
+    return False
+
+
+def _stop(*_: Any) -> None:
+    """SIGTERM: stop as SIGINT does (the trial is marked interrupted and enqueued again by the next ``run``)."""
+    raise KeyboardInterrupt
+
+
+def work(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
+    """One worker: trials of the campaigns one after another, each campaign's grid before the next one's; then, while
+    other workers run the last grid points, it waits, and runs any whose worker dies."""
+    signal.signal(signal.SIGTERM, _stop)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    provenance()  # the code this process runs
+    studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
+    for name, study, campaign in studies:
+        work_on(name, study, campaign)
+    delay = 1.0
+    while any(running(study, campaign) for _, study, campaign in studies):
+        time.sleep(delay)
+        delay = min(2 * delay, 60.0)
+        for name, study, campaign in studies:
+            recover(study, campaign, stale_after)
+            work_on(name, study, campaign)
+
+
+def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
+    total = len(campaign.grid)
+
+    def announce(study: optuna.Study, trial: FrozenTrial) -> None:
+        task, variant, seed = grid_point(trial) or ("(no parameters)", "", "")
+        if trial.state == TrialState.COMPLETE:
+            a = trial.user_attrs
+            line = (f"max average return {a['max_average_return']:.1f}, final {a['final_return']:.1f}, "
+                    f"{a['steps_per_cpu_second']:.0f} steps/CPU-s, {a['cpu_seconds'] / 60:.1f} CPU-min "
+                    f"(+{a['eval_cpu_seconds'] / 60:.1f} evaluating), {a['wall_seconds'] / 60:.1f} wall-min")  # fmt: skip
+        else:
+            line = trial.state.name
+        print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
+
+    rng = random.Random()  # seeded from the OS: workers draw apart
+    while pending(study, campaign):
+        draw(study, campaign, rng)
+        study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
+
+
+def run(names: list[str], storage: str | None, workers: int, stale_after: float) -> None:
+    """Recover the trials of dead workers, start ``workers`` worker processes over the campaigns in order and show
+    the grids' progress."""
+    studies = []
+    for name in names:
+        study, campaign = open_study(name, storage_of(name, storage))
+        retried = recover(study, campaign, stale_after)
+        if retried:
+            print(f"{name}: trials {retried} were interrupted or their worker is gone: enqueued again", flush=True)
+        print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete, "
+              f"{pending(study, campaign)} waiting", flush=True)  # fmt: skip
+        studies.append((study, campaign))
+    command = [sys.executable, str(SCRIPT), "work", "--campaign", *names]
+    command += ["--stale-after", str(stale_after)]
+    command += ["--storage", storage] if storage else []
+    processes = [subprocess.Popen(command) for _ in range(workers)]
+
+    def stop(*_: Any) -> None:
+        for process in processes:
+            process.send_signal(signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, stop)
+    from tqdm import tqdm
+
+    def complete() -> int:
+        return sum(done(study, campaign) for study, campaign in studies)
+
+    total = sum(len(campaign.grid) for _, campaign in studies)
+    with tqdm(total=total, initial=complete(), desc=" ".join(names), unit="trial", disable=None) as bar:
+        while any(process.poll() is None for process in processes):
+            time.sleep(10)
+            bar.update(complete() - bar.n)
+    codes = [process.wait() for process in processes]
+    if any(codes):
+        raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
