@@ -170,6 +170,16 @@ def test_results_pages_are_short():
     assert words("| a | 12 ± 3 |\n|---|---|\n```bash\nnot counted\n```\n") == 3
 
 
+def test_results_pages_lead_with_one_plain_sentence():
+    """A newcomer reads what a results page shows before its statistics: its first paragraph is one sentence in
+    words (no IQM, CI or table) after "In short:"."""
+    for page in sorted(DOCS.glob("results-*.md")):
+        first = page.read_text().split("\n\n")[1]
+        assert first.startswith("**In short:** "), page.name
+        assert first.count(". ") == 0 and first.rstrip().endswith("."), page.name
+        assert not any(term in first for term in ("IQM", "CI", "|", "±")), page.name
+
+
 def test_every_result_file_is_cited_and_every_cited_result_exists():
     """Each file under docs/results is named by a page (itself, a folder above it, or a glob that matches it); each
     path a page names there exists, and each glob matches a file."""
