@@ -340,3 +340,70 @@ def test_objectives_follow_the_steps_a_rollout_of_whole_episodes_collected():
     # 15 per 150-step rollout (one per 10 steps), none in the first (a contrast needs two policies); 200 per rollout
     # if each counted n_steps (2000)
     assert model.rollout_buffer.buffer_size == 150 and len(calls) == 0 + 15 + 15
+
+
+def test_whole_episodes_with_dict_observations_vecnormalize_and_a2c():
+    from conftest import DictPendulum
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    # Dict observations: Pendulum's 200-step episodes, 2 of them (the second ends past n_steps=300)
+    model = PPOPeVFA("MultiInputPolicy", make_vec_env(DictPendulum, n_envs=1, seed=0), rollout_episodes=2, n_steps=300,
+                     batch_size=100, n_epochs=1, history_learning_starts=0, seed=0)  # fmt: skip
+    model.learn(600)
+    buffer = model.rollout_buffer
+    assert model.num_timesteps == 800 and buffer.buffer_size == 400
+    assert {len(v) for v in buffer.observations.values()} == {400} and model.history.n_samples == 800
+    # VecNormalize: the history keeps each rollout's raw observations, all of them
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, rollout_episodes=1, n_steps=100, batch_size=100, n_epochs=1, seed=0)
+    model.learn(400)
+    assert model.history.renormalize and model.history.n_samples == 400 and model.rollout_buffer.buffer_size == 200
+    raw = model.history.samples(raw=True)[0]
+    assert raw.shape == (400, 3) and np.all(np.abs(raw[:, :2]) <= 1.0)  # cos and sin as the env gave them
+    # A2C: one update on each whole episode (200 samples), its critic batch the whole rollout
+    model = A2CPeVFA("MlpPolicy", "Pendulum-v1", rollout_episodes=1, n_steps=5, update_order="critic_first", seed=0)
+    sizes = []
+    step = model._critic_step
+    model._critic_step = lambda loss, what: sizes.append(what) or step(loss, what)  # type: ignore[method-assign]
+    model.learn(600)
+    assert model._n_updates == 3 and model.rollout_buffer.buffer_size == 200
+    assert sizes.count("value loss of the critic-first epochs") == 3  # one step on all 200 samples per update
+
+
+def test_an_actor_minibatch_of_its_own_size():
+    model = _model((30,), algorithm="ppo", actor_batch_size=50)
+    _rollout(model)  # 150 samples: 3 minibatches of 50 per epoch
+    steps = []
+    step = model.policy.optimizer.step
+    model.policy.optimizer.step = lambda *a, **k: steps.append(1) or step(*a, **k)  # type: ignore[method-assign]
+    with model.policy.critic_frozen():
+        model._train_actor_critic()
+    assert len(steps) == 10 * 3
+
+
+def test_embedding_diagnostics_are_logged_with_each_row_and_only_then():
+    from stable_baselines3.common.logger import KVWriter, Logger
+
+    from sb3_pevfa.pevfa.algorithm import PeVFAAlgorithm
+
+    rows = []
+
+    class Rows(KVWriter):
+        def write(self, values, *args, **kwargs):
+            rows.append(dict(values))
+
+        def close(self):
+            pass
+
+    model = _model((30,), n_steps=100, history_learning_starts=0)
+    model.set_logger(Logger(folder=None, output_formats=[Rows()]))
+    calls = []
+    gradient = PeVFAAlgorithm.value_chi_gradient
+    model.value_chi_gradient = lambda *a: calls.append(1) or gradient(model, *a)  # type: ignore[method-assign]
+    model.learn(600, log_interval=2)
+    iterations = len(rows) * 2
+    assert len(rows) >= 2 and len(calls) == len(rows) < iterations  # every second iteration
+    assert all({"pevfa/embedding_norm", "pevfa/value_chi_gradient"} <= set(row) for row in rows)
+    calls.clear()
+    model.learn(300, log_interval=10**6, reset_num_timesteps=False)  # no row written: nothing computed
+    assert not calls
