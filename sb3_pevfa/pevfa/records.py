@@ -44,9 +44,10 @@ class PolicyRecord(NamedTuple):
 class ActorLayout:
     """How the actor's parameters are laid out in a flat parameter vector.
 
-    Every linear layer of the actor (``mlp_extractor.policy_net`` then ``action_net``) contributes its
-    matrix ``[W | b]`` of shape ``(out, in + 1)``, row-major: each row is one unit (an "operation" in the
-    paper's terms). The log standard deviation of Gaussian policies comes last.
+    Every linear layer of the actor (``mlp_extractor.policy_net`` then ``action_net``; a policy with an
+    ``actor_parts()`` method names its own hidden layers and output heads, e.g. SAC's ``latent_pi`` then ``mu`` and
+    ``log_std``) contributes its matrix ``[W | b]`` of shape ``(out, in + 1)``, row-major: each row is one unit (an
+    "operation" in the paper's terms). The log standard deviation of Gaussian policies comes last.
     Convolutional feature extractors are not part of the layout: for CNN policies only the MLP head is recorded.
 
     With the activation after each hidden layer (and gSDE's ``use_expln``), the layout also says how to evaluate the
@@ -61,6 +62,9 @@ class ActorLayout:
     use_expln: bool = False
     #: The activation of the Gaussian's mean (the policy's ``mean_activation_fn``); None: linear
     mean_activation_fn: type[nn.Module] | None = None
+    #: Output layers, all reading the last hidden layer (SAC: the mean and the log-std heads); the last ``heads``
+    #: entries of ``linear_shapes``
+    heads: int = 1
 
     @property
     def log_std_numel(self) -> int:
@@ -71,28 +75,38 @@ class ActorLayout:
         return sum(out * (inp + 1) for out, inp in self.linear_shapes) + self.log_std_numel
 
     @staticmethod
-    def linear_layers(policy: ActorCriticPolicy) -> list[nn.Linear]:
-        """The actor's linear layers, from input to output."""
-        for module in (policy.mlp_extractor.policy_net, policy.action_net):
+    def actor_parts(policy: nn.Module) -> tuple[nn.Module, list[nn.Module]]:
+        """The actor's hidden layers and its output heads: the policy's own ``actor_parts()``, else SB3's on-policy
+        ``mlp_extractor.policy_net`` and ``[action_net]``."""
+        if hasattr(policy, "actor_parts"):
+            return policy.actor_parts()
+        return policy.mlp_extractor.policy_net, [policy.action_net]
+
+    @classmethod
+    def linear_layers(cls, policy: nn.Module) -> list[nn.Linear]:
+        """The actor's linear layers, from input to output (the heads last)."""
+        hidden, heads = cls.actor_parts(policy)
+        for module in (hidden, *heads):
             for sub in module.modules():
                 if len(list(sub.parameters(recurse=False))) > 0 and not isinstance(sub, nn.Linear):
                     raise TypeError(
                         f"PeVFA records actors made of nn.Linear layers, found {type(sub).__name__} in the actor's head"
                     )
-        layers = [m for m in policy.mlp_extractor.policy_net.modules() if isinstance(m, nn.Linear)]
-        if not isinstance(policy.action_net, nn.Linear):
-            raise TypeError(f"PeVFA expects `action_net` to be nn.Linear, got {type(policy.action_net).__name__}")
-        return [*layers, policy.action_net]
+        for head in heads:
+            if not isinstance(head, nn.Linear):
+                raise TypeError(f"PeVFA expects the actor's output layers to be nn.Linear, got {type(head).__name__}")
+        return [*(m for m in hidden.modules() if isinstance(m, nn.Linear)), *heads]
 
-    @staticmethod
-    def activation(policy: ActorCriticPolicy) -> type[nn.Module] | None:
-        """The class of the activation after every hidden linear layer of ``policy_net`` (SB3's MlpExtractor: one per
-        layer, ``activation_fn``); None where ``policy_net`` is not a sequence of [Linear, activation] pairs."""
-        steps = [m for m in policy.mlp_extractor.policy_net.modules() if not isinstance(m, nn.Sequential)]
+    @classmethod
+    def activation(cls, policy: nn.Module) -> type[nn.Module] | None:
+        """The class of the activation after every hidden linear layer (SB3's MlpExtractor: one per layer,
+        ``activation_fn``); None where the hidden layers are not a sequence of [Linear, activation] pairs."""
+        hidden, _ = cls.actor_parts(policy)
+        steps = [m for m in hidden.modules() if not isinstance(m, nn.Sequential)]
         kinds = {type(m) for m in steps[1::2]}
         if len(steps) % 2 or not all(isinstance(m, nn.Linear) for m in steps[0::2]) or len(kinds) > 1 or nn.Linear in kinds:
             return None
-        return kinds.pop() if kinds else policy.activation_fn
+        return kinds.pop() if kinds else getattr(policy, "activation_fn", None)
 
     @classmethod
     def from_policy(cls, policy: ActorCriticPolicy) -> "ActorLayout":
@@ -102,8 +116,9 @@ class ActorLayout:
             linear_shapes=shapes,
             log_std_shape=tuple(log_std.shape) if isinstance(log_std, th.Tensor) else (),
             activation_fn=cls.activation(policy),
-            use_expln=bool(getattr(policy.action_dist, "use_expln", False)),
+            use_expln=bool(getattr(getattr(policy, "action_dist", None), "use_expln", False)),
             mean_activation_fn=getattr(policy, "mean_activation_fn", None),
+            heads=len(cls.actor_parts(policy)[1]),
         )
 
     def flatten(self, policy: ActorCriticPolicy) -> th.Tensor:
@@ -130,16 +145,16 @@ class ActorLayout:
         :param params: Flat parameters of ``P`` actors, ``(P, n_params)``
         :param inputs: The actor's inputs (the features extractor's outputs), ``(K, in)`` for all or ``(P, K, in)``
         :return: ``policy_net``'s output (gSDE's latent) ``(P, K, hidden)`` and ``action_net``'s ``(P, K, out)``
-            (through ``mean_activation_fn`` where the policy has one)
+            (through ``mean_activation_fn`` where the policy has one); with several heads, theirs side by side
         """
         if self.activation_fn is None:
             raise TypeError("Evaluating actors needs a policy_net of [nn.Linear, activation] pairs (SB3's MlpExtractor)")
         activation = self.activation_fn()
         rows, _ = self.split(params)
         latent = inputs
-        for layer in rows[:-1]:
+        for layer in rows[: -self.heads]:
             latent = activation(_batched_linear(latent, layer))
-        outputs = _batched_linear(latent, rows[-1])
+        outputs = th.cat([_batched_linear(latent, head) for head in rows[-self.heads :]], dim=-1)
         if self.mean_activation_fn is not None:
             outputs = self.mean_activation_fn()(outputs)
         return latent.expand(len(params), *latent.shape[-2:]), outputs

@@ -1,0 +1,202 @@
+"""What a PeVFA adds to SB3's off-policy algorithms (SAC, TD3), as a mixin: a bounded history of actor snapshots and
+extra critic updates for them.
+
+``class SACPeVFA(OffPolicyPeVFA, SAC)``: SB3's ``train`` runs as it is, its critics reading chi of the live actor
+(:class:`~sb3_pevfa.pevfa.q_critics.PeVFAContinuousCritic`); after it, the live actor is recorded every
+``snapshot_freq`` gradient steps, and every ``history_train_freq`` gradient steps one critic update fits
+Q(s, a, chi_k) of ``history_batch_policies`` snapshots k to their own targets on replay transitions:
+r + gamma (1 - d) (min Q'(s', a'_k, chi'_k) [- alpha log pi_k(a'_k | s')]), a'_k drawn from snapshot k's actor
+(:meth:`OffPolicyPeVFA._snapshot_actions`).
+"""
+
+import io
+import pathlib
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.preprocessing import get_action_dim
+from torch.nn import functional as F
+
+from sb3_pevfa.pevfa.history import PolicyHistory
+from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
+
+#: The snapshot arguments of an off-policy PeVFA algorithm's constructor
+SNAPSHOT_ARGUMENTS = (
+    "snapshot_freq",
+    "history_max_policies",
+    "history_train_freq",
+    "history_batch_size",
+    "history_batch_policies",
+    "history_learning_starts",
+)
+
+
+#: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``)
+POLICY_ARGUMENTS = ("representation", "embedding_dim", "representation_kwargs")
+
+
+def off_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
+    """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice)."""
+    ours = {name: arguments[name] for name in POLICY_ARGUMENTS}
+    clash = sorted(set(policy_kwargs or {}) & set(ours))
+    if clash:
+        raise ValueError(f"Pass {clash} as arguments of the algorithm, not in policy_kwargs")
+    return {**(policy_kwargs or {}), **ours}
+
+
+def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
+    """A ValueError naming the argument where one is not a valid int."""
+    for name in SNAPSHOT_ARGUMENTS:
+        value, least = arguments[name], 0 if name in ("history_train_freq", "history_learning_starts") else 1
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
+            raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
+    if arguments["history_batch_size"] % arguments["history_batch_policies"]:
+        raise ValueError(
+            f"history_batch_size ({arguments['history_batch_size']}) must be a multiple of history_batch_policies "
+            f"({arguments['history_batch_policies']}): each snapshot gets as many transitions"
+        )
+
+
+class OffPolicyPeVFA(OffPolicyAlgorithm):
+    """The snapshot history and its critic updates; subclasses list it before their SB3 base and implement
+    :meth:`_snapshot_actions` (and :meth:`_entropy_term` where the target has one)."""
+
+    history: PolicyHistory
+    #: The critic loss of SB3's update is this times the sum of the critics' MSE (SAC: 0.5, TD3: 1)
+    critic_loss_scale: float = 1.0
+    snapshot_freq: int
+    history_max_policies: int
+    history_train_freq: int
+    history_batch_size: int
+    history_batch_policies: int
+    history_learning_starts: int
+
+    def __init__(
+        self,
+        policy: Any,
+        env: Any,
+        representation: str = "opr",
+        embedding_dim: int = 64,
+        representation_kwargs: dict[str, Any] | None = None,
+        snapshot_freq: int = 1000,
+        history_max_policies: int = 100,
+        history_train_freq: int = 2,
+        history_batch_size: int = 256,
+        history_batch_policies: int = 8,
+        history_learning_starts: int = 0,
+        policy_kwargs: dict[str, Any] | None = None,
+        _init_setup_model: bool = True,
+        **kwargs: Any,
+    ):
+        """The PeVFA arguments (see the algorithm's docstring); the rest are the SB3 base's, by keyword."""
+        arguments = dict(locals())
+        policy_kwargs = off_policy_kwargs(policy_kwargs, arguments)
+        super().__init__(policy, env, policy_kwargs=policy_kwargs, _init_setup_model=False, **kwargs)
+        check_snapshot_arguments(arguments)
+        for name in SNAPSHOT_ARGUMENTS:
+            setattr(self, name, int(arguments[name]))
+        self._history_credit = 0
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        critic = self.policy.critic
+        self.history = PolicyHistory(
+            self.observation_space,
+            self.action_space,
+            critic.layout.n_params,
+            n_state_action_pairs=0,
+            code_dim=critic.behaviour_codes.numel(),
+            buffer_size=1,  # records only: the replay buffer holds the transitions
+            max_policies=self.history_max_policies,
+            seed=self.seed,
+            representation=self.policy.representation_name,
+            layout=critic.layout,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "history"]
+
+    # ------------------------------------------------------------------ snapshots
+    def record_snapshot(self) -> int:
+        """Record the live actor (its flat parameters, a random code) and make its code the critics'; its id."""
+        critic = self.policy.critic
+        params = critic.layout.flatten(self.policy).cpu().numpy()
+        code = self.history.rng.uniform(-1.0, 1.0, size=self.history.code_dim).astype(np.float32)
+        record = {"params": params, "codes": code, "states": np.zeros((0, state_dim(self.observation_space)), np.float32),
+                  "actions": np.zeros((0, get_action_dim(self.action_space)), np.float32)}  # fmt: skip
+        policy_id = self.history.add_record(record, n_updates=self._n_updates, num_timesteps=self.num_timesteps)
+        with th.no_grad():
+            for module in (critic, self.policy.critic_target):
+                module.behaviour_codes.copy_(th.as_tensor(code))
+        return policy_id
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        """SB3's update, then the snapshots and the historical critic updates of its ``gradient_steps``."""
+        before = self._n_updates
+        super().train(gradient_steps, batch_size)  # type: ignore[safe-super]
+        if not self.history.n_policies or before // self.snapshot_freq < self._n_updates // self.snapshot_freq:
+            self.record_snapshot()
+        if self.history_train_freq == 0 or self.num_timesteps < self.history_learning_starts:
+            return
+        self._history_credit += gradient_steps
+        n_updates, self._history_credit = divmod(self._history_credit, self.history_train_freq)
+        losses = [self._train_on_snapshots() for _ in range(n_updates)]
+        if losses:
+            self.logger.record("pevfa/history_value_loss", float(np.mean(losses)))
+        self.logger.record("pevfa/history_updates", len(losses))
+        self.logger.record("pevfa/n_policies", self.history.n_policies)
+
+    def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+        """Actions of ``P`` snapshots at their own inputs ``(P, K, features)``: ``(P * K, action_dim)`` and their
+        log-probabilities ``(P * K,)`` (None for deterministic actors)."""
+        raise NotImplementedError
+
+    def _entropy_term(self) -> th.Tensor | None:
+        """alpha of the target's entropy term (None: no entropy term)."""
+        return None
+
+    def _train_on_snapshots(self) -> float:
+        """One critic update of Q(s, a, chi_k) on replay transitions paired with snapshots k; its loss."""
+        critic, target = self.policy.critic, self.policy.critic_target
+        ids = self.history.sample_policy_ids(self.history_batch_policies)
+        n_policies = len(ids)
+        per_policy = self.history_batch_size // self.history_batch_policies
+        data = self.replay_buffer.sample(per_policy * n_policies, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        records = PolicyRecord.from_numpy(self.history.records(ids), self.device)
+        pairing = th.arange(n_policies, device=self.device).repeat_interleave(per_policy)  # snapshot of each transition
+        discounts = data.discounts if data.discounts is not None else self.gamma
+        with th.no_grad():
+            features = self.actor.extract_features(data.next_observations, self.actor.features_extractor)
+            actions, log_prob = self._snapshot_actions(records, features.reshape(n_policies, per_policy, -1))
+            next_chi = target.representation(records)[pairing] if target.representation.embedding_dim else None
+            next_q, _ = th.min(th.cat(target(data.next_observations, actions, next_chi), dim=1), dim=1, keepdim=True)
+            alpha = self._entropy_term()
+            if alpha is not None and log_prob is not None:
+                next_q = next_q - alpha * log_prob.reshape(-1, 1)
+            targets = data.rewards + (1 - data.dones) * discounts * next_q
+        chi = critic.representation(records)[pairing] if critic.representation.embedding_dim else None
+        values = critic(data.observations, data.actions, chi)
+        loss = self.critic_loss_scale * sum(F.mse_loss(value, targets) for value in values)
+        critic.optimizer.zero_grad()
+        loss.backward()  # type: ignore[union-attr]
+        critic.optimizer.step()
+        return float(loss.item())  # type: ignore[union-attr]
+
+    # ------------------------------------------------------------------ files
+    def save_history(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Save the snapshots (``.npz``, apart from the model, as the replay buffer is)."""
+        self.history.save(path)
+
+    def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
+        """Load snapshots saved by :meth:`save_history`; the live actor's code becomes the latest snapshot's."""
+        self.history.load(path)
+        latest = self.history.latest_policy_id
+        if latest is not None and self.history.code_dim:
+            code = th.as_tensor(self.history.records([latest], fields=("codes",))["codes"][0])
+            with th.no_grad():
+                for module in (self.policy.critic, self.policy.critic_target):
+                    module.behaviour_codes.copy_(code)

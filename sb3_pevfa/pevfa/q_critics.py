@@ -1,0 +1,189 @@
+"""Twin policy-extended critics Q(s, a, chi_pi) for SB3's off-policy algorithms (SAC, TD3).
+
+Each critic is a state-action stream (SB3's ``net_arch["qf"]`` layers on [features, action]) and the PeVFA head of
+the on-policy critic (:class:`~sb3_pevfa.pevfa.critics.PeVFAValueHead`: chi -> embedding stream, concatenated,
+head -> 1). The encoder of chi lives in the critic, so that the target critic holds a Polyak copy of it.
+
+Where chi is not given, it is the embedding of the *live* actor: its flat parameters copied without gradient (the
+actor is never trained through its own embedding) and, for the ``random`` representation, the code of its latest
+snapshot.
+"""
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BaseModel
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
+from torch import nn
+
+from sb3_pevfa.pevfa.critics import PeVFAValueHead
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord
+from sb3_pevfa.pevfa.representations import make_representation
+
+#: Representations an off-policy critic can read: the actor's parameters, a random code per snapshot, or nothing
+OFF_POLICY_REPRESENTATIONS = ("opr", "random", "none")
+
+
+class QStream(nn.Module):
+    """One critic: the state-action stream and the PeVFA head."""
+
+    def __init__(self, stream: nn.Module, head: PeVFAValueHead):
+        super().__init__()
+        self.stream, self.head = stream, head
+
+    def forward(self, inputs: th.Tensor, chi: th.Tensor) -> th.Tensor:
+        return self.head(self.stream(inputs), chi)
+
+
+class PeVFAContinuousCritic(BaseModel):
+    """SB3's :class:`~stable_baselines3.common.policies.ContinuousCritic` with chi as an input of every critic.
+
+    :param layout: The actor's parameter layout
+    :param actor_holder: A one-element tuple of the policy whose actor is live (its ``actor_parts``, read at each call
+        without gradient; a tuple, so that the policy is not a submodule of its own critic)
+    :param representation: ``opr``, ``random`` or ``none``
+    :param embedding_arch: The embedding stream of chi
+    :param head_arch: Layers after the two streams are concatenated
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+        *,
+        layout: ActorLayout,
+        actor_holder: tuple[nn.Module],
+        representation: str = "opr",
+        embedding_dim: int = 64,
+        representation_kwargs: dict[str, Any] | None = None,
+        embedding_arch: tuple[int, ...] = (64,),
+        head_arch: tuple[int, ...] = (256,),
+        critic_activation_fn: type[nn.Module] = nn.ReLU,
+        chi_normalization: str = "none",
+    ):
+        super().__init__(
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
+        )
+        if representation not in OFF_POLICY_REPRESENTATIONS:
+            valid = OFF_POLICY_REPRESENTATIONS
+            raise ValueError(f"Unknown representation {representation!r} of an off-policy PeVFA, valid choices: {valid}")
+        action_dim = get_action_dim(self.action_space)
+        self.share_features_extractor = share_features_extractor
+        self.n_critics = n_critics
+        self.layout = layout
+        self.actor_holder = actor_holder
+        self.q_networks: list[nn.Module] = []
+        stream_dim = net_arch[-1] if net_arch else features_dim + action_dim
+        for idx in range(n_critics):  # SB3's order of layers (and of random draws) where chi is absent
+            stream = nn.Sequential(*create_mlp(features_dim + action_dim, -1, list(net_arch), activation_fn))
+            head_embedding = 0 if representation == "none" else embedding_dim
+            head = PeVFAValueHead(stream_dim, head_embedding, list(embedding_arch), list(head_arch), "concat",
+                                  critic_activation_fn, chi_normalization)  # fmt: skip
+            q_net = QStream(stream, head)
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)
+        self.representation = make_representation(
+            representation, layout, observation_space, action_space, embedding_dim, **(representation_kwargs or {})
+        )
+        #: The live actor's random code (``random``): its latest snapshot's
+        self.register_buffer("behaviour_codes", th.zeros(embedding_dim if representation == "random" else 0))
+
+    def actor_record(self) -> PolicyRecord:
+        """The live actor's record: its flat parameters (a copy, without gradient) and its latest snapshot's code."""
+        params = self.layout.flatten(self.actor_holder[0]).to(self.device)[None]
+        empty = th.zeros(1, 0, device=self.device)
+        return PolicyRecord(params, empty, empty, self.behaviour_codes[None])
+
+    def live_embedding(self) -> th.Tensor:
+        """chi of the live actor, ``(1, embedding_dim)`` (with gradient into the encoder while it trains)."""
+        if self.representation.embedding_dim == 0:
+            return th.zeros(1, 0, device=self.device)
+        return self.representation(self.actor_record())
+
+    def forward(self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None) -> tuple[th.Tensor, ...]:
+        """Q-values of every critic, ``(batch, 1)`` each. :param chi: ``(batch or 1, embedding_dim)``; default: the
+        live actor's"""
+        with th.set_grad_enabled(not self.share_features_extractor):
+            features = self.extract_features(obs, self.features_extractor)
+        chi = self.live_embedding() if chi is None else chi
+        inputs = th.cat([features, actions], dim=1)
+        return tuple(q_net(inputs, chi) for q_net in self.q_networks)
+
+    def q1_forward(self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None) -> th.Tensor:
+        """The first critic's Q-values (TD3's actor loss), the features without gradient as in SB3."""
+        with th.no_grad():
+            features = self.extract_features(obs, self.features_extractor)
+        chi = self.live_embedding() if chi is None else chi
+        return self.q_networks[0](th.cat([features, actions], dim=1), chi)
+
+
+class PeVFAQPolicyMixin:
+    """What SB3's SAC and TD3 policies need to build :class:`PeVFAContinuousCritic`: the PeVFA keyword arguments,
+    ``make_critic`` and the constructor parameters. A policy lists it before its SB3 base and defines
+    ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them).
+
+    :param representation: ``opr`` (the actor's parameters), ``random`` (a code per snapshot) or ``none``
+    :param embedding_dim: Size of chi
+    :param representation_kwargs: Keyword arguments of the representation
+    :param critic_embedding_arch: The embedding stream of chi
+    :param critic_head_arch: Layers after the state-action stream (``net_arch["qf"]``) and chi's are concatenated
+    :param critic_activation_fn: Activation of the embedding stream and the head
+    :param chi_normalization: ``"none"`` or ``"layernorm"``
+    """
+
+    critic_kwargs: dict[str, Any]
+
+    def __init__(
+        self,
+        *args: Any,
+        representation: str = "opr",
+        embedding_dim: int = 64,
+        representation_kwargs: dict[str, Any] | None = None,
+        critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
+        critic_head_arch: list[int] | tuple[int, ...] = (256,),
+        critic_activation_fn: type[nn.Module] = nn.ReLU,
+        chi_normalization: str = "none",
+        **kwargs: Any,
+    ):
+        if kwargs.get("use_sde"):
+            raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
+        self.representation_name = representation
+        self.pevfa_kwargs = dict(
+            representation=representation,
+            embedding_dim=embedding_dim,
+            representation_kwargs=dict(representation_kwargs or {}),
+            embedding_arch=tuple(critic_embedding_arch),
+            head_arch=tuple(critic_head_arch),
+            critic_activation_fn=critic_activation_fn,
+            chi_normalization=chi_normalization,
+        )
+        super().__init__(*args, **kwargs)
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> PeVFAContinuousCritic:
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)  # type: ignore[attr-defined]
+        layout = ActorLayout.from_policy(self)  # type: ignore[arg-type]
+        critic = PeVFAContinuousCritic(**critic_kwargs, layout=layout, actor_holder=(self,), **self.pevfa_kwargs)
+        return critic.to(self.device)  # type: ignore[attr-defined]
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()  # type: ignore[misc]
+        kwargs = self.pevfa_kwargs
+        data.update(
+            representation=kwargs["representation"],
+            embedding_dim=kwargs["embedding_dim"],
+            representation_kwargs=kwargs["representation_kwargs"],
+            critic_embedding_arch=kwargs["embedding_arch"],
+            critic_head_arch=kwargs["head_arch"],
+            critic_activation_fn=kwargs["critic_activation_fn"],
+            chi_normalization=kwargs["chi_normalization"],
+        )
+        return data

@@ -1,0 +1,52 @@
+"""SAC with a policy-extended critic Q(s, a, chi_pi) and critic updates for snapshots of its actor."""
+
+from typing import ClassVar
+
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN
+
+from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
+from sb3_pevfa.pevfa.records import PolicyRecord
+from sb3_pevfa.sac_pevfa.policies import MlpPolicy, SACPeVFAPolicy
+
+
+class SACPeVFA(OffPolicyPeVFA, SAC):
+    """SAC whose twin critics read an embedding chi of the policy, Q(s, a, chi), and also learn the values of
+    snapshots of the actor (:mod:`sb3_pevfa.pevfa.off_policy`). SB3's SAC update runs unchanged, its critics reading
+    chi of the live actor (held fixed: no gradient reaches the actor through it); the target critics keep a Polyak
+    copy of the encoder too.
+
+    Parameters not listed are SAC's (:class:`~stable_baselines3.SAC`, passed by keyword).
+
+    :param representation: ``opr``, ``random`` or ``none``
+    :param embedding_dim: Size of chi
+    :param representation_kwargs: Keyword arguments of the representation
+    :param snapshot_freq: Gradient steps between two snapshots of the actor
+    :param history_max_policies: Snapshots kept (the oldest go first)
+    :param history_train_freq: Gradient steps per critic update on the snapshots; 0 turns them off
+    :param history_batch_size: Replay transitions per such update, ``history_batch_size / history_batch_policies`` for
+        each of ``history_batch_policies`` snapshots drawn uniformly
+    :param history_batch_policies: Snapshots per update
+    :param history_learning_starts: Env steps before the snapshots' updates start
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
+    policy: SACPeVFAPolicy
+    critic_loss_scale = 0.5
+
+    def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+        """Each snapshot's squashed Gaussian at its inputs, sampled as SB3's actor samples (with its log-probability)."""
+        layout = self.policy.critic.layout
+        _, outputs = layout.evaluate(records.params, features)
+        mean, log_std = outputs.reshape(-1, outputs.shape[-1]).chunk(2, dim=-1)
+        log_std = th.clamp(log_std, LOG_STD_MIN, LOG_STD_MAX)
+        distribution = SquashedDiagGaussianDistribution(mean.shape[-1])
+        return distribution.log_prob_from_params(mean, log_std)
+
+    def _entropy_term(self) -> th.Tensor:
+        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+            return th.exp(self.log_ent_coef.detach())
+        return self.ent_coef_tensor

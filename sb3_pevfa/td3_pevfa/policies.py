@@ -1,0 +1,25 @@
+"""TD3's policy with a policy-extended twin critic Q(s, a, chi_pi)."""
+
+from stable_baselines3.td3.policies import TD3Policy
+from torch import nn
+
+from sb3_pevfa.pevfa.q_critics import PeVFAQPolicyMixin
+
+
+class TD3PeVFAPolicy(PeVFAQPolicyMixin, TD3Policy):
+    """SB3's :class:`~stable_baselines3.td3.policies.TD3Policy`, its critics Q(s, a, chi)
+    (:class:`~sb3_pevfa.pevfa.q_critics.PeVFAQPolicyMixin` lists the PeVFA arguments); the actor is SB3's. OPR reads
+    the layers of ``mu`` (its last one the output, through SB3's tanh)."""
+
+    #: The actor's output goes through a tanh (SB3's ``squash_output``), as the layout evaluates it
+    mean_activation_fn = nn.Tanh
+
+    def actor_parts(self) -> tuple[nn.Module, list[nn.Module]]:
+        """The actor's hidden layers and its output layer (before the tanh), as the layout reads them."""
+        layers = list(self.actor.mu)
+        if not isinstance(layers[-1], nn.Tanh):
+            raise TypeError(f"TD3PeVFA expects SB3's actor, its output through nn.Tanh, got {self.actor.mu}")
+        return nn.Sequential(*layers[:-2]), [layers[-2]]
+
+
+MlpPolicy = TD3PeVFAPolicy

@@ -1,0 +1,146 @@
+"""SACPeVFA (and what it shares with TD3PeVFA): SB3's SAC with a policy-extended twin critic and critic updates for
+snapshots of its actor."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import SAC, TD3
+
+from sb3_pevfa.pevfa.records import PolicyRecord
+from sb3_pevfa.sac_pevfa import SACPeVFA
+from sb3_pevfa.td3_pevfa import TD3PeVFA
+
+
+def tiny(**policy_kwargs) -> dict:
+    """A tiny SAC / TD3: small networks, updates from the 100th step (a new dict each time: SB3 adds keys to it)."""
+    return dict(learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32, 32], **policy_kwargs), seed=0)
+
+
+def _sb3_name(key: str) -> str:
+    """Our critic's parameter name as SB3's ContinuousCritic calls it (qf0.stream.2 -> qf0.2, the head's output last)."""
+    key = key.replace(".stream.", ".")
+    return key.replace(".head.output.", ".4.")
+
+
+@pytest.mark.parametrize(("sb3_class", "pevfa_class"), [(SAC, SACPeVFA), (TD3, TD3PeVFA)])
+def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class):
+    sb3 = sb3_class("MlpPolicy", "Pendulum-v1", **tiny())
+    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, **tiny(critic_head_arch=()))
+
+    def compared() -> tuple[dict, dict]:
+        mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if "behaviour_codes" not in k}
+        return mine, sb3.policy.state_dict()
+
+    mine, theirs = compared()
+    assert set(mine) == set(theirs) and all(th.equal(mine[k], theirs[k]) for k in theirs)  # the same initial weights
+    for model in (sb3, ours):  # from the same global random states (each constructor seeded them in turn)
+        th.manual_seed(1)
+        np.random.seed(1)
+        model.learn(300)
+    mine, theirs = compared()
+    assert all(th.equal(mine[k], theirs[k]) for k in theirs), [k for k in theirs if not th.equal(mine[k], theirs[k])]
+    assert ours.history.n_policies >= 1  # the snapshots are recorded all the same
+
+
+def test_no_gradient_reaches_the_actor_through_its_embedding():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(150)
+    observations = th.as_tensor(model.replay_buffer.observations[:16, 0])
+    actions = th.as_tensor(model.replay_buffer.actions[:16, 0])
+    model.policy.zero_grad(set_to_none=True)
+    critic = model.policy.critic
+    chi = critic.live_embedding()
+    assert chi.shape == (1, 64) and chi.requires_grad  # the encoder learns from the critic's loss
+    sum(q.sum() for q in critic(observations, actions)).backward()
+    assert all(p.grad is None for p in model.policy.actor.parameters())  # chi of the live actor carries none to it
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in critic.representation.parameters())
+
+
+def snapshot_then_move_on(model) -> tuple:
+    """Record a snapshot, then move the live actor away from it: the snapshot's actor (a copy), its record, and 8
+    replay observations with their features."""
+    snapshot = copy.deepcopy(model.policy.actor)
+    policy_id = model.record_snapshot()
+    with th.no_grad():
+        for param in model.policy.actor.parameters():
+            param.add_(0.5 * th.randn_like(param))
+    observations = th.as_tensor(model.replay_buffer.observations[:8, 0])
+    records = PolicyRecord.from_numpy(model.history.records([policy_id]))
+    return snapshot, records, observations, model.actor.extract_features(observations, model.actor.features_extractor)
+
+
+def test_a_snapshots_target_uses_that_snapshots_actions():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(150)
+    snapshot, records, observations, features = snapshot_then_move_on(model)
+    th.manual_seed(3)
+    actions, log_prob = model._snapshot_actions(records, features[None])
+    th.manual_seed(3)
+    expected_actions, expected_log_prob = snapshot.action_log_prob(observations)
+    np.testing.assert_allclose(actions.detach(), expected_actions.detach(), atol=1e-5)
+    np.testing.assert_allclose(log_prob.detach(), expected_log_prob.detach(), atol=1e-4)
+    th.manual_seed(3)
+    live_actions, _ = model.policy.actor.action_log_prob(observations)
+    assert not th.allclose(live_actions, actions, atol=1e-3)  # not the live actor's
+
+
+def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation="random", snapshot_freq=20, history_max_policies=3,
+                     history_train_freq=4, history_batch_size=32, history_batch_policies=4, **tiny())  # fmt: skip
+    model.learn(260)  # 160 gradient steps: 1 + 8 snapshots, the latest 3 kept
+    assert model.history.n_policies == 3 and model.history.policy_ids == [6, 7, 8]
+    latest_code = model.history.records([8], fields=("codes",))["codes"][0]
+    np.testing.assert_array_equal(model.policy.critic.behaviour_codes.numpy(), latest_code)
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "snapshots")
+    loaded = SACPeVFA.load(tmp_path / "model", env=model.get_env())
+    loaded.load_history(tmp_path / "snapshots")
+    assert loaded.history.policy_ids == [6, 7, 8] and loaded.history_max_policies == 3 and loaded.snapshot_freq == 20
+    np.testing.assert_array_equal(loaded.policy.critic_target.behaviour_codes.numpy(), latest_code)
+    np.testing.assert_array_equal(loaded.history.records([7])["params"], model.history.records([7])["params"])
+    loaded.learn(40, reset_num_timesteps=False)
+
+
+def test_the_snapshots_updates_train_the_critic_at_their_cadence():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, history_train_freq=5, history_batch_size=32,
+                     history_batch_policies=4, history_learning_starts=150, **tiny())  # fmt: skip
+    calls = []
+    train = model._train_on_snapshots
+    model._train_on_snapshots = lambda: calls.append(1) or train()  # type: ignore[method-assign]
+    model.learn(300)  # gradient steps from step 100; snapshot updates from step 150: 150 steps -> 30 updates
+    assert len(calls) == 30
+    before = copy.deepcopy(model.policy.critic.state_dict())
+    loss = train()
+    assert np.isfinite(loss) and any(not th.equal(v, model.policy.critic.state_dict()[k]) for k, v in before.items())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(representation="spr"), r"valid choices: \('opr', 'random', 'none'\)"),
+        (dict(snapshot_freq=0), "snapshot_freq must be an int >= 1"),
+        (dict(history_batch_size=30, history_batch_policies=8), "must be a multiple of history_batch_policies"),
+        (dict(use_sde=True), "use_sde=True is not supported"),
+        (dict(policy_kwargs=dict(representation="opr")), r"Pass \['representation'\] as arguments of the algorithm"),
+    ],
+)
+def test_bad_arguments_are_refused_at_construction(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs)
+
+
+def test_several_envs_under_vecnormalize():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
+    model = SACPeVFA("MlpPolicy", env, snapshot_freq=10, history_train_freq=2, history_batch_size=32,
+                     history_batch_policies=4, **tiny())  # fmt: skip
+    seen = []
+    sample = model.replay_buffer.sample
+    model.replay_buffer.sample = lambda n, env=None: seen.append(env) or sample(n, env=env)  # type: ignore[method-assign]
+    model.learn(300)
+    assert model.history.n_policies > 5 and model.logger.name_to_value["pevfa/history_updates"] > 0
+    assert seen and all(e is env for e in seen)  # the snapshots' transitions in today's normalization, as SB3's

@@ -1,0 +1,25 @@
+"""TD3PeVFA: its snapshots' smoothed actions (bit for bit TD3 without a representation: tests/test_sac_pevfa.py)."""
+
+import numpy as np
+import torch as th
+from test_sac_pevfa import snapshot_then_move_on, tiny
+
+from sb3_pevfa.td3_pevfa import TD3PeVFA
+
+
+def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_gradient_through_chi():
+    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", history_train_freq=5, history_batch_size=32, history_batch_policies=4,
+                     **tiny())  # fmt: skip
+    model.learn(200)
+    snapshot, records, observations, features = snapshot_then_move_on(model)
+    th.manual_seed(5)
+    actions, log_prob = model._snapshot_actions(records, features[None])
+    th.manual_seed(5)
+    noise = th.randn(8, 1).mul_(model.target_policy_noise).clamp_(-model.target_noise_clip, model.target_noise_clip)
+    expected = (snapshot(observations) + noise).clamp(-1, 1)
+    assert log_prob is None
+    np.testing.assert_allclose(actions.detach(), expected.detach(), atol=1e-5)
+    assert not th.allclose((model.policy.actor(observations) + noise).clamp(-1, 1), actions, atol=1e-3)
+    model.policy.zero_grad(set_to_none=True)  # TD3's actor loss: Q1(s, mu(s), chi) with chi of the live actor
+    (-model.policy.critic.q1_forward(observations, model.policy.actor(observations).detach()).mean()).backward()
+    assert all(p.grad is None for p in model.policy.actor.parameters())
