@@ -563,3 +563,28 @@ def test_an_authors_protocol_trial_trains_on_their_env_evaluates_sampled_actions
     assert {(deterministic, shape) for deterministic, shape, _ in seen} == {(False, (5,))}
     assert result["curve"]["steps"] == [2000, 4000, 6000] and result["resumed_from"] == state["timesteps"]
     assert result["timesteps"] >= 6000 and "rollout_episodes" in result["arguments"]
+
+
+def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_and_snapshots(tmp_path, monkeypatch):
+    small = dict(learning_starts=900, batch_size=32, policy_kwargs=dict(net_arch=[32, 32]))  # a tiny SAC
+    monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
+    tiny = definitions.Campaign("sac", (TASK,), ("opr",), (0,), 2000, 500, 2)
+    evaluate = training.evaluate_policy
+
+    def stopped_at_1500(model, *args, **kwargs):
+        if model.num_timesteps == 1500 and not (tmp_path / "stopped").exists():
+            (tmp_path / "stopped").touch()
+            raise KeyboardInterrupt
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(training, "evaluate_policy", stopped_at_1500)
+    folder = tmp_path / "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
+    assert {p.name for p in folder.iterdir()} >= {"model.zip", "history.npz", "replay_buffer.pkl", "state.json"}
+    state = json.loads((folder / "state.json").read_text())
+    result = training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
+    assert result["resumed_from"] == state["timesteps"] == 1000 and result["timesteps"] == 2000
+    assert result["curve"]["steps"] == [500, 1000, 1500, 2000] and state["n_policies"] == 1  # the first update's
+    arguments = result["arguments"]
+    assert arguments["snapshot_freq"] == "1000" and arguments["learning_starts"] == "900"  # the mixin's and SAC's

@@ -9,6 +9,9 @@ import os
 import pathlib
 from typing import Any
 
+from stable_baselines3 import SAC
+
+from sb3_pevfa import SACPeVFA
 from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
 from sb3_pevfa.protocols import authors_protocol, make_authors_env, paper_protocol
 
@@ -112,6 +115,8 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
     },
     # the zoo variants (learning.py's), trained through rl-zoo3's entry point on one hyperparameter file (the conf)
     "zoo": dict(ZOO_VARIANTS),
+    # SAC and SACPeVFA in rl-zoo3's SAC settings (OFF_POLICY): OPR, and a random code per snapshot as its control
+    "sac": {"sac": None, "opr": {}, "random": dict(representation="random")},
     "sb3": {
         "ppo": None,
         "opr": {},
@@ -120,6 +125,13 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
     },
 }
 
+
+#: Protocols of off-policy algorithms: protocol -> (SB3's algorithm, its PeVFA class, the arguments both take); the
+#: others train SB3's PPO (a variant of None) and PPOPeVFA
+OFF_POLICY: dict[str, tuple[type, type, dict[str, Any]]] = {
+    # rl-zoo3's SAC entries of Hopper and HalfCheetah: SB3's SAC defaults with 10k random steps first
+    "sac": (SAC, SACPeVFA, dict(learning_starts=10_000)),
+}
 
 #: Protocols whose evaluation samples actions (the authors' code); the others evaluate the deterministic policy
 STOCHASTIC_EVALUATION = {"authors"}
@@ -213,6 +225,8 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-authors": Campaign("authors", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5)), 2_000_000),
     # then the paper's Ran PR control in the same protocol: a fixed random code per policy in place of OPR
     "table1-authors-random": Campaign("authors", TABLE1_TASKS, ("random",), tuple(range(5)), 2_000_000),
+    # SAC against SACPeVFA (OPR, and a random code per snapshot) in rl-zoo3's SAC settings, after the authors' grids
+    "sac-pevfa": Campaign("sac", ("Hopper-v5", "HalfCheetah-v5"), ("sac", "opr", "random"), tuple(range(5)), 200_000),
     # the pilot of table1-authors: one task and seed, to check that its PPO lands near the paper's before the grid runs
     "table1-authors-pilot": Campaign("authors", ("Hopper-v5",), ("ppo", "opr-e2e"), (0,), 2_000_000),
     # the local-generalization diagnostic (paper Fig. 3b / 8) where grid (a)'s direction differs from the paper's

@@ -30,13 +30,14 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import KVWriter, Logger
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
 
 from . import zoo
-from .definitions import ENV_MAKERS, LOCAL_GENERALIZATION, ROOT, STOCHASTIC_EVALUATION, VARIANTS, Campaign
+from .definitions import ENV_MAKERS, LOCAL_GENERALIZATION, OFF_POLICY, ROOT, STOCHASTIC_EVALUATION, VARIANTS, Campaign
 from .training_logs import parse_log
 
 #: Env steps between two checkpoints of a running trial
@@ -132,10 +133,13 @@ def save_checkpoint(folder: pathlib.Path, model: PPO, state: dict[str, Any]) -> 
     folder.mkdir(parents=True, exist_ok=True)
     model.save(folder / "model.tmp.zip")
     os.replace(folder / "model.tmp.zip", folder / "model.zip")
-    if isinstance(model, PPOPeVFA):
+    if hasattr(model, "save_history"):  # a PeVFA: its policy history or snapshots
         model.save_history(folder / "history.tmp.npz")
         os.replace(folder / "history.tmp.npz", folder / "history.npz")
         state = {**state, "n_policies": model.history.n_policies}
+    if isinstance(model, OffPolicyAlgorithm):  # its replay buffer, to go on from
+        model.save_replay_buffer(folder / "replay_buffer.tmp.pkl")
+        os.replace(folder / "replay_buffer.tmp.pkl", folder / "replay_buffer.pkl")
     (folder / "state.tmp.json").write_text(json.dumps(state))
     os.replace(folder / "state.tmp.json", folder / "state.json")
 
@@ -145,21 +149,27 @@ def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, en
     if folder is None or not (folder / "state.json").exists():
         return None
     state = json.loads((folder / "state.json").read_text())
-    algorithm = PPO if VARIANTS[protocol][variant] is None else PPOPeVFA
-    model = algorithm.load(folder / "model.zip", env=env)
-    if isinstance(model, PPOPeVFA):
+    model = algorithm_of(protocol, variant).load(folder / "model.zip", env=env)
+    if hasattr(model, "load_history"):
         model.load_history(folder / "history.npz")
         if model.history.n_policies != state["n_policies"]:
             return None
+    if isinstance(model, OffPolicyAlgorithm):
+        model.load_replay_buffer(folder / "replay_buffer.pkl")
     return (model, state) if model.num_timesteps == state["timesteps"] else None
 
 
+def algorithm_of(protocol: str, variant: str) -> type:
+    """The class of a grid point: SB3's algorithm for a variant of None, else its PeVFA class (PPO and PPOPeVFA, or
+    an off-policy protocol's, ``OFF_POLICY``)."""
+    base, pevfa, _ = OFF_POLICY.get(protocol, (PPO, PPOPeVFA, {}))
+    return base if VARIANTS[protocol][variant] is None else pevfa
+
+
 def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
-    """The model of one grid point (``VARIANTS``)."""
-    arguments = VARIANTS[protocol][variant]
-    if arguments is None:
-        return PPO("MlpPolicy", env, seed=seed)
-    return PPOPeVFA("MlpPolicy", env, seed=seed, **arguments)
+    """The model of one grid point (``VARIANTS``, with an off-policy protocol's shared arguments)."""
+    shared = OFF_POLICY[protocol][2] if protocol in OFF_POLICY else {}
+    return algorithm_of(protocol, variant)("MlpPolicy", env, seed=seed, **shared, **(VARIANTS[protocol][variant] or {}))
 
 
 def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None,
@@ -268,8 +278,15 @@ class MemoryOutput(KVWriter):
 
 
 def resolved_arguments(model: PPO) -> dict[str, str]:
-    """Every constructor argument as the model holds it (class defaults included), as text."""
-    names = inspect.signature(type(model).__init__).parameters
+    """Every constructor argument as the model holds it (class defaults included), as text: those of the model's
+    constructor, and where it passes ``**kwargs`` on (the off-policy PeVFA mixin), those of the next one's."""
+    names: set[str] = set()
+    for cls in type(model).__mro__:
+        if "__init__" in vars(cls):
+            parameters = inspect.signature(cls.__init__).parameters
+            names |= set(parameters)
+            if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+                break
     values = {name: getattr(model, name) for name in names if name not in ("self", "policy", "env") and hasattr(model, name)}
     return {name: repr(value) for name, value in values.items()}
 
