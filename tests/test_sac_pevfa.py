@@ -19,15 +19,16 @@ def tiny(**policy_kwargs) -> dict:
 
 
 def _sb3_name(key: str) -> str:
-    """Our critic's parameter name as SB3's ContinuousCritic calls it (qf0.stream.2 -> qf0.2, the head's output last)."""
+    """Our critic's parameter name as SB3's ContinuousCritic calls it: the stream's layer, then the head's hidden
+    layer (its last hidden one) and output."""
     key = key.replace(".stream.", ".")
-    return key.replace(".head.output.", ".4.")
+    return key.replace(".head.hidden.0.", ".2.").replace(".head.output.", ".4.")
 
 
 @pytest.mark.parametrize(("sb3_class", "pevfa_class"), [(SAC, SACPeVFA), (TD3, TD3PeVFA)])
 def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class):
     sb3 = sb3_class("MlpPolicy", "Pendulum-v1", **tiny())
-    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, **tiny(critic_head_arch=()))
+    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, **tiny())
 
     def compared() -> tuple[dict, dict]:
         mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if "behaviour_codes" not in k}

@@ -1,6 +1,7 @@
 """Twin policy-extended critics Q(s, a, chi_pi) for SB3's off-policy algorithms (SAC, TD3).
 
-Each critic is a state-action stream (SB3's ``net_arch["qf"]`` layers on [features, action]) and the PeVFA head of
+Each critic is a state-action stream (SB3's ``net_arch["qf"]`` layers on [features, action], by default all but the
+last) and the PeVFA head of
 the on-policy critic (:class:`~sb3_pevfa.pevfa.critics.PeVFAValueHead`: chi -> embedding stream, concatenated,
 head -> 1). The encoder of chi lives in the critic, so that the target critic holds a Polyak copy of it.
 
@@ -45,7 +46,8 @@ class PeVFAContinuousCritic(BaseModel):
         without gradient; a tuple, so that the policy is not a submodule of its own critic)
     :param representation: ``opr``, ``random`` or ``none``
     :param embedding_arch: The embedding stream of chi
-    :param head_arch: Layers after the two streams are concatenated
+    :param head_arch: Layers after the two streams are concatenated; None: the last layer of ``net_arch`` (the critic
+        then has SB3's layers, chi entering before the last hidden one)
     """
 
     def __init__(
@@ -66,7 +68,7 @@ class PeVFAContinuousCritic(BaseModel):
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
         embedding_arch: tuple[int, ...] = (64,),
-        head_arch: tuple[int, ...] = (256,),
+        head_arch: tuple[int, ...] | None = None,
         critic_activation_fn: type[nn.Module] = nn.ReLU,
         chi_normalization: str = "none",
     ):
@@ -82,6 +84,8 @@ class PeVFAContinuousCritic(BaseModel):
         self.layout = layout
         self.actor_holder = actor_holder
         self.q_networks: list[nn.Module] = []
+        if head_arch is None:
+            net_arch, head_arch = list(net_arch[:-1]), tuple(net_arch[-1:])
         stream_dim = net_arch[-1] if net_arch else features_dim + action_dim
         for idx in range(n_critics):  # SB3's order of layers (and of random draws) where chi is absent
             stream = nn.Sequential(*create_mlp(features_dim + action_dim, -1, list(net_arch), activation_fn))
@@ -135,7 +139,8 @@ class PeVFAQPolicyMixin:
     :param embedding_dim: Size of chi
     :param representation_kwargs: Keyword arguments of the representation
     :param critic_embedding_arch: The embedding stream of chi
-    :param critic_head_arch: Layers after the state-action stream (``net_arch["qf"]``) and chi's are concatenated
+    :param critic_head_arch: Layers after the state-action stream and chi's are concatenated; None (default): the last
+        layer of ``net_arch["qf"]``, the stream the layers before it (SB3's critic, chi entering its last hidden layer)
     :param critic_activation_fn: Activation of the embedding stream and the head
     :param chi_normalization: ``"none"`` or ``"layernorm"``
     """
@@ -149,7 +154,7 @@ class PeVFAQPolicyMixin:
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
         critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
-        critic_head_arch: list[int] | tuple[int, ...] = (256,),
+        critic_head_arch: list[int] | tuple[int, ...] | None = None,
         critic_activation_fn: type[nn.Module] = nn.ReLU,
         chi_normalization: str = "none",
         **kwargs: Any,
@@ -162,7 +167,7 @@ class PeVFAQPolicyMixin:
             embedding_dim=embedding_dim,
             representation_kwargs=dict(representation_kwargs or {}),
             embedding_arch=tuple(critic_embedding_arch),
-            head_arch=tuple(critic_head_arch),
+            head_arch=None if critic_head_arch is None else tuple(critic_head_arch),
             critic_activation_fn=critic_activation_fn,
             chi_normalization=chi_normalization,
         )
