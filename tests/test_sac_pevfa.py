@@ -45,8 +45,9 @@ def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_c
     assert ours.history.n_policies >= 1  # the snapshots are recorded all the same
 
 
-def test_no_gradient_reaches_the_actor_through_its_embedding():
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+@pytest.mark.parametrize("live_encoder_gradient", [True, False])
+def test_no_gradient_reaches_the_actor_through_its_embedding(live_encoder_gradient):
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", live_encoder_gradient=live_encoder_gradient, **tiny())
     model.learn(150)
     observations = th.as_tensor(model.replay_buffer.observations[:16, 0])
     actions = th.as_tensor(model.replay_buffer.actions[:16, 0])
@@ -56,7 +57,66 @@ def test_no_gradient_reaches_the_actor_through_its_embedding():
     assert chi.shape == (1, 64) and chi.requires_grad  # the encoder learns from the critic's loss
     sum(q.sum() for q in critic(observations, actions)).backward()
     assert all(p.grad is None for p in model.policy.actor.parameters())  # chi of the live actor carries none to it
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in critic.representation.parameters())
+    encoder_grads = [p.grad is not None and p.grad.abs().sum() > 0 for p in critic.representation.parameters()]
+    assert any(encoder_grads) == live_encoder_gradient  # the live critic loss trains the encoder only where asked
+    actions_pi = model.policy.actor(observations).requires_grad_()  # the actor's loss: no gradient into the encoder
+    model.policy.zero_grad(set_to_none=True)
+    sum(q.sum() for q in critic(observations, actions_pi)).backward()
+    assert all(p.grad is None for p in critic.representation.parameters())
+
+
+def test_the_encoder_learns_from_the_live_critic_loss_only_where_asked():
+    for live, moved in ((False, False), (True, True)):
+        model = SACPeVFA("MlpPolicy", "Pendulum-v1", history_train_freq=0, live_encoder_gradient=live, **tiny())
+        before = [p.detach().clone() for p in model.policy.critic.representation.parameters()]
+        model.learn(130)
+        after = list(model.policy.critic.representation.parameters())
+        assert any(not th.equal(b, a) for b, a in zip(before, after)) == moved
+
+
+def test_the_critic_head_adds_chi_as_a_bias_equal_to_the_concatenation():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    q_net = model.policy.critic.q_networks[0]
+    inputs, chi, pairing = th.randn(12, 4), th.randn(3, 64), th.tensor([0, 2, 1, 1, 0, 2, 2, 2, 0, 1, 0, 0])
+    expected = q_net.head(q_net.stream(inputs), chi[pairing])  # the head as the on-policy critic runs it
+    th.testing.assert_close(q_net(inputs, chi, pairing), expected, atol=1e-6, rtol=0)
+    th.testing.assert_close(q_net(inputs, chi[:1]), q_net.head(q_net.stream(inputs), chi[:1]), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("fused_actor", [False, True])
+def test_the_live_chi_without_gradient_follows_every_step_of_the_actor(fused_actor):
+    kwargs = tiny(optimizer_kwargs=dict(fused=True) if fused_actor else None)
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs)  # a fused Adam moves weights without version counters
+    model.learn(120)
+    critic = model.policy.critic
+    cached = critic.live_embedding(grad=False)
+    assert critic.live_embedding(grad=False) is cached  # computed once while nothing moves
+    model.train(1, 32)
+    fresh = critic.representation(PolicyRecord.from_numpy({
+        "params": critic.layout.flatten(model.policy)[None].numpy(), "states": np.zeros((1, 0)),
+        "actions": np.zeros((1, 0)), "codes": critic.behaviour_codes[None].numpy()}))  # fmt: skip
+    th.testing.assert_close(critic.live_embedding(grad=False), fresh.detach(), atol=0, rtol=0)
+    assert not th.equal(fresh, cached)
+
+
+def test_the_critic_optimizer_is_fused_where_it_reads_chi():
+    def fused(**kwargs) -> bool:
+        return bool(SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs).policy.critic.optimizer.defaults["fused"])
+
+    assert fused(**tiny()) and fused(representation="random", **tiny())
+    assert not fused(representation="none", **tiny())  # SB3's SAC as it is
+    assert not fused(**tiny(fused_critic_optimizer=False))
+    assert not fused(**tiny(optimizer_kwargs=dict(foreach=True)))  # the user's choice wins
+
+
+def test_the_training_mode_is_set_in_one_pass_and_the_target_stays_in_evaluation():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    policy = model.policy
+    for mode in (False, True, False):
+        policy.set_training_mode(mode)
+        assert policy.training is mode
+        assert all(m.training is mode for part in (policy.actor, policy.critic) for m in part.modules())
+        assert not any(m.training for m in policy.critic_target.modules())
 
 
 def snapshot_then_move_on(model) -> tuple:

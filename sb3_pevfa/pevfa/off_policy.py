@@ -66,6 +66,7 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
     history: PolicyHistory
     #: The critic loss of SB3's update is this times the sum of the critics' MSE (SAC: 0.5, TD3: 1)
     critic_loss_scale: float = 1.0
+    live_encoder_gradient: bool
     snapshot_freq: int
     history_max_policies: int
     history_train_freq: int
@@ -86,6 +87,7 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
         history_batch_size: int = 256,
         history_batch_policies: int = 8,
         history_learning_starts: int = 0,
+        live_encoder_gradient: bool = False,
         policy_kwargs: dict[str, Any] | None = None,
         _init_setup_model: bool = True,
         **kwargs: Any,
@@ -97,6 +99,9 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
         check_snapshot_arguments(arguments)
         for name in SNAPSHOT_ARGUMENTS:
             setattr(self, name, int(arguments[name]))
+        if not isinstance(live_encoder_gradient, bool):
+            raise ValueError(f"live_encoder_gradient must be a bool, got {live_encoder_gradient!r}")
+        self.live_encoder_gradient = live_encoder_gradient
         self._history_credit = 0
         if _init_setup_model:
             self._setup_model()
@@ -104,6 +109,8 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         super()._setup_model()
         critic = self.policy.critic
+        for module in (critic, self.policy.critic_target):
+            module.live_chi_gradient = self.live_encoder_gradient
         self.history = PolicyHistory(
             self.observation_space,
             self.action_space,
@@ -172,14 +179,13 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
         with th.no_grad():
             features = self.actor.extract_features(data.next_observations, self.actor.features_extractor)
             actions, log_prob = self._snapshot_actions(records, features.reshape(n_policies, per_policy, -1))
-            next_chi = target.representation(records)[pairing] if target.representation.embedding_dim else None
-            next_q, _ = th.min(th.cat(target(data.next_observations, actions, next_chi), dim=1), dim=1, keepdim=True)
+            next_q = th.cat(target(data.next_observations, actions, target.representation(records), pairing), dim=1)
+            next_q, _ = th.min(next_q, dim=1, keepdim=True)
             alpha = self._entropy_term()
             if alpha is not None and log_prob is not None:
                 next_q = next_q - alpha * log_prob.reshape(-1, 1)
             targets = data.rewards + (1 - data.dones) * discounts * next_q
-        chi = critic.representation(records)[pairing] if critic.representation.embedding_dim else None
-        values = critic(data.observations, data.actions, chi)
+        values = critic(data.observations, data.actions, critic.representation(records), pairing)
         loss = self.critic_loss_scale * sum(F.mse_loss(value, targets) for value in values)
         critic.optimizer.zero_grad()
         loss.backward()  # type: ignore[union-attr]

@@ -17,6 +17,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
 from torch import nn
 
+from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, PeVFAValueHead
 from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, rows, state_dim
@@ -66,7 +67,7 @@ def _check_actor_options(
         raise ValueError("mean_activation_fn needs a Box action space without gSDE (a Gaussian's mean to squash)")
 
 
-class PeVFAActorCriticPolicy(ActorCriticPolicy):
+class PeVFAActorCriticPolicy(OnePassTrainingMode, ActorCriticPolicy):
     """SB3's :class:`~stable_baselines3.common.policies.ActorCriticPolicy` with a policy-extended critic.
 
     The actor is SB3's, unchanged. The critic V(s, chi) reads the state stream (``net_arch["vf"]``, paper: one layer
@@ -182,7 +183,6 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         #: loss on the rollout leaves the encoder alone); the algorithm's ``rollout_encoder_gradient`` sets it
         self.behaviour_chi_gradient = True
         self._embedding_cache: tuple[tuple, th.Tensor] | None = None
-        self._plain_modules: list[nn.Module] | None = None
         super().__init__(observation_space, action_space, lr_schedule, net_arch, activation_fn, *args, **kwargs)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -446,11 +446,6 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
         self.clear_embedding_cache()
         return result
 
-    def __setattr__(self, name: str, value: Any) -> None:
-        if isinstance(value, nn.Module):  # a module added or replaced: list them again at the next change of mode
-            self.__dict__["_plain_modules"] = None
-        super().__setattr__(name, value)
-
     def __getstate__(self) -> dict[str, Any]:
         """What pickle and ``copy.deepcopy`` take: the module without the action distribution of the latest call.
 
@@ -465,28 +460,7 @@ class PeVFAActorCriticPolicy(ActorCriticPolicy):
             elif isinstance(value, th.Tensor) and value.grad_fn is not None:
                 setattr(action_dist, name, value.detach().clone())  # e.g. gSDE's exploration matrices
         state["action_dist"] = action_dist
-        state["_plain_modules"] = None  # listed again on the next change of mode
         return state
-
-    def set_training_mode(self, mode: bool) -> None:
-        """SB3's, skipped where the mode is already set (every module is set at once: the root's flag is theirs). The
-        cached chi stays: it is computed in evaluation mode whatever the mode, and every step that moves the encoder
-        drops it (:meth:`clear_embedding_cache`)."""
-        if not isinstance(mode, bool):
-            raise ValueError(f"training mode is expected to be a bool, got {mode!r}")
-        if mode == self.training:
-            return
-        if self._plain_modules is None:  # modules whose train() is nn.Module's: their flags can be set in one pass
-            modules = list(self.modules())
-            plain = all(type(module).train is nn.Module.train for module in modules)
-            self._plain_modules = modules if plain else []
-        if not self._plain_modules:
-            super().set_training_mode(mode)
-            return
-        # what nn.Module.train(mode) sets, without its recursion (CPU time per update); a module replaced deeper in the
-        # tree than the policy's own attributes needs ``_plain_modules = None``
-        for module in self._plain_modules:
-            module.__dict__["training"] = mode
 
 
 class PeVFAActorCriticCnnPolicy(PeVFAActorCriticPolicy):

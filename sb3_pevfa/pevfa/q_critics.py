@@ -7,7 +7,9 @@ head -> 1). The encoder of chi lives in the critic, so that the target critic ho
 
 Where chi is not given, it is the embedding of the *live* actor: its flat parameters copied without gradient (the
 actor is never trained through its own embedding) and, for the ``random`` representation, the code of its latest
-snapshot.
+snapshot. The encoder learns from the critic's own loss only: where the actions carry a gradient (SAC's actor loss,
+TD3's ``q1_forward``), chi is computed without one. The flat copy is taken once per change of the actor's weights
+(SB3's target and critic calls of a gradient step read the same one).
 """
 
 from typing import Any
@@ -17,8 +19,11 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
+from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
+from torch.nn import functional as F
 
+from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord
 from sb3_pevfa.pevfa.representations import make_representation
@@ -34,8 +39,20 @@ class QStream(nn.Module):
         super().__init__()
         self.stream, self.head = stream, head
 
-    def forward(self, inputs: th.Tensor, chi: th.Tensor) -> th.Tensor:
-        return self.head(self.stream(inputs), chi)
+    def forward(self, inputs: th.Tensor, chi: th.Tensor, pairing: th.Tensor | None = None) -> th.Tensor:
+        """:param chi: ``(1 or P, embedding_dim)``; :param pairing: the row of chi of each input (None: one chi for
+        all, or one per input)"""
+        latent, head = self.stream(inputs), self.head
+        if head.embedding_net is None or head.combine != "concat" or not len(head.hidden):
+            return head(latent, chi if pairing is None else chi[pairing])
+        # the head's first layer on [latent, code] is its latent columns on the batch plus its code columns on each
+        # distinct code, a bias per code (the same function, without a batch of copies of the codes)
+        first = head.hidden[0]
+        code = head.embedding_net(head.chi_norm(chi))
+        width = latent.shape[1]
+        bias = F.linear(code, first.weight[:, width:], first.bias)
+        bias = bias if pairing is None else bias[pairing]
+        return head.output(head.hidden[1:](F.linear(latent, first.weight[:, :width]) + bias))
 
 
 class PeVFAContinuousCritic(BaseModel):
@@ -100,40 +117,84 @@ class PeVFAContinuousCritic(BaseModel):
         )
         #: The live actor's random code (``random``): its latest snapshot's
         self.register_buffer("behaviour_codes", th.zeros(embedding_dim if representation == "random" else 0))
+        #: The live actor's chi carries a gradient into the encoder in the critic's loss (else only explicit chi do,
+        #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
+        self.live_chi_gradient = True
+        self._cache: dict[str, tuple[tuple, th.Tensor]] = {}
+        #: Bumped after each step of the actor's or the critic's optimizer (a fused optimizer moves the weights without
+        #: their version counters)
+        self.generation = 0
+
+    def touch(self, *_: Any) -> None:
+        """Mark the actor's or the encoder's weights as moved (an optimizer's step hook)."""
+        self.generation += 1
+
+    def _cached(self, name: str, key: tuple, compute: Any) -> th.Tensor:
+        """``compute()``, again only when ``key`` changed since the last call under ``name``."""
+        if name not in self._cache or self._cache[name][0] != key:
+            self._cache[name] = (key, compute())
+        return self._cache[name][1]
+
+    def _actor_key(self) -> tuple:
+        """What the live actor's weights are now: the generation, the storage and version of each tensor."""
+        actor = self.actor_holder[0]
+        layers = self._cached("layers", (id(actor.actor),), lambda: self.layout.linear_layers(actor))
+        return (self.generation, *((t.data_ptr(), t._version) for layer in layers for t in (layer.weight, layer.bias)))
+
+    def _actor_params(self) -> th.Tensor:
+        """The live actor's flat parameters ``(1, n_params)``, copied again only when they moved."""
+        flatten = lambda: self.layout.flatten(self.actor_holder[0]).to(self.behaviour_codes.device)[None]  # noqa: E731
+        return self._cached("params", self._actor_key(), flatten)
 
     def actor_record(self) -> PolicyRecord:
         """The live actor's record: its flat parameters (a copy, without gradient) and its latest snapshot's code."""
-        params = self.layout.flatten(self.actor_holder[0]).to(self.device)[None]
-        empty = th.zeros(1, 0, device=self.device)
-        return PolicyRecord(params, empty, empty, self.behaviour_codes[None])
+        empty = self.behaviour_codes.new_zeros(1, 0)
+        return PolicyRecord(self._actor_params(), empty, empty, self.behaviour_codes[None])
 
-    def live_embedding(self) -> th.Tensor:
-        """chi of the live actor, ``(1, embedding_dim)`` (with gradient into the encoder while it trains)."""
+    def live_embedding(self, grad: bool = True) -> th.Tensor:
+        """chi of the live actor, ``(1, embedding_dim)``, with gradient into the encoder where ``grad`` and gradients
+        are enabled (else computed once per change of the actor's or the encoder's weights, or of the code)."""
         if self.representation.embedding_dim == 0:
-            return th.zeros(1, 0, device=self.device)
-        return self.representation(self.actor_record())
+            return self.behaviour_codes.new_zeros(1, 0)
+        record = self.actor_record()
+        if grad and th.is_grad_enabled():
+            return self.representation(record)
+        tensors = (self.behaviour_codes, *self.representation.parameters())
+        key = (*self._actor_key(), *((t.data_ptr(), t._version) for t in tensors))
+        with th.no_grad():
+            return self._cached("chi", key, lambda: self.representation(record))
 
-    def forward(self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None) -> tuple[th.Tensor, ...]:
-        """Q-values of every critic, ``(batch, 1)`` each. :param chi: ``(batch or 1, embedding_dim)``; default: the
-        live actor's"""
+    def __getstate__(self) -> dict[str, Any]:
+        return {**super().__getstate__(), "_cache": {}}  # a copy reads its own actor
+
+    def forward(
+        self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None, pairing: th.Tensor | None = None
+    ) -> tuple[th.Tensor, ...]:
+        """Q-values of every critic, ``(batch, 1)`` each.
+
+        :param chi: ``(batch or 1, embedding_dim)``, or ``(P, embedding_dim)`` with ``pairing``; default: the live
+            actor's
+        :param pairing: The row of chi of each input, ``(batch,)``
+        """
         with th.set_grad_enabled(not self.share_features_extractor):
             features = self.extract_features(obs, self.features_extractor)
-        chi = self.live_embedding() if chi is None else chi
+        chi = self.live_embedding(grad=self.live_chi_gradient and not actions.requires_grad) if chi is None else chi
         inputs = th.cat([features, actions], dim=1)
-        return tuple(q_net(inputs, chi) for q_net in self.q_networks)
+        return tuple(q_net(inputs, chi, pairing) for q_net in self.q_networks)
 
     def q1_forward(self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None) -> th.Tensor:
         """The first critic's Q-values (TD3's actor loss), the features without gradient as in SB3."""
         with th.no_grad():
             features = self.extract_features(obs, self.features_extractor)
-        chi = self.live_embedding() if chi is None else chi
+        chi = self.live_embedding(grad=False) if chi is None else chi
         return self.q_networks[0](th.cat([features, actions], dim=1), chi)
 
 
-class PeVFAQPolicyMixin:
+class PeVFAQPolicyMixin(OnePassTrainingMode):
     """What SB3's SAC and TD3 policies need to build :class:`PeVFAContinuousCritic`: the PeVFA keyword arguments,
     ``make_critic`` and the constructor parameters. A policy lists it before its SB3 base and defines
-    ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them).
+    ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them). The training mode is
+    set in one pass over the actor's and the critic's modules (the target critic stays in evaluation mode, as SB3's).
 
     :param representation: ``opr`` (the actor's parameters), ``random`` (a code per snapshot) or ``none``
     :param embedding_dim: Size of chi
@@ -143,9 +204,13 @@ class PeVFAQPolicyMixin:
         layer of ``net_arch["qf"]``, the stream the layers before it (SB3's critic, chi entering its last hidden layer)
     :param critic_activation_fn: Activation of the embedding stream and the head
     :param chi_normalization: ``"none"`` or ``"layernorm"``
+    :param fused_critic_optimizer: Where the critic reads chi, step it with torch's fused Adam (the same update, one
+        kernel for all its tensors: its encoder makes the critic 3.5x SAC's count of tensors), unless the optimizer
+        is not Adam / AdamW or ``optimizer_kwargs`` chooses ``fused`` or ``foreach``; False: SB3's optimizer as given
     """
 
     critic_kwargs: dict[str, Any]
+    optimizer_kwargs: dict[str, Any]
 
     def __init__(
         self,
@@ -157,11 +222,13 @@ class PeVFAQPolicyMixin:
         critic_head_arch: list[int] | tuple[int, ...] | None = None,
         critic_activation_fn: type[nn.Module] = nn.ReLU,
         chi_normalization: str = "none",
+        fused_critic_optimizer: bool = True,
         **kwargs: Any,
     ):
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
         self.representation_name = representation
+        self.fused_critic_optimizer = bool(fused_critic_optimizer)
         self.pevfa_kwargs = dict(
             representation=representation,
             embedding_dim=embedding_dim,
@@ -172,6 +239,20 @@ class PeVFAQPolicyMixin:
             chi_normalization=chi_normalization,
         )
         super().__init__(*args, **kwargs)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)  # type: ignore[misc]
+        optimizer = self.critic.optimizer  # type: ignore[attr-defined]
+        fusable = type(optimizer) in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(self.optimizer_kwargs)
+        if self.fused_critic_optimizer and self.representation_name != "none" and fusable:
+            params = [param for group in optimizer.param_groups for param in group["params"]]
+            self.critic.optimizer = type(optimizer)(params, **{**optimizer.defaults, "foreach": None, "fused": True})  # type: ignore[attr-defined]
+        for model in (self.actor, self.critic):  # type: ignore[attr-defined]
+            for critic in (self.critic, self.critic_target):  # type: ignore[attr-defined]
+                model.optimizer.register_step_post_hook(critic.touch)
+
+    def _mode_roots(self) -> tuple[nn.Module, ...]:
+        return (self.actor, self.critic)  # type: ignore[attr-defined]
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> PeVFAContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)  # type: ignore[attr-defined]
@@ -190,5 +271,6 @@ class PeVFAQPolicyMixin:
             critic_head_arch=kwargs["head_arch"],
             critic_activation_fn=kwargs["critic_activation_fn"],
             chi_normalization=kwargs["chi_normalization"],
+            fused_critic_optimizer=self.fused_critic_optimizer,
         )
         return data

@@ -31,6 +31,9 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
         each of ``history_batch_policies`` snapshots drawn uniformly
     :param history_batch_policies: Snapshots per update
     :param history_learning_starts: Env steps before the snapshots' updates start
+    :param live_encoder_gradient: The critic's loss on the live actor trains the encoder too (end to end); False
+        (default): the snapshots' updates train it, and chi of the live actor is computed once per gradient step
+        without gradient (the critic still learns Q(s, a, chi) of the live actor)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
