@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.sac_pevfa import SACPeVFA
@@ -205,3 +206,38 @@ def test_several_envs_under_vecnormalize():
     model.learn(300)
     assert model.history.n_policies > 5 and model.logger.name_to_value["pevfa/history_updates"] > 0
     assert seen and all(e is env for e in seen)  # the snapshots' transitions in today's normalization, as SB3's
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class):
+    """Model, replay buffer and snapshots saved, RNG states restored: learning on continues bit for bit (the envs
+    seeded and reset at the resume in both runs, as SB3's load does)."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    def make_env():
+        return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
+
+    kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4, **tiny())
+    reference = pevfa_class("MlpPolicy", make_env(), **kwargs)
+    reference.learn(200)
+    reference.save(tmp_path / "model")
+    reference.save_replay_buffer(tmp_path / "replay_buffer")  # the snapshots beside it
+    assert (tmp_path / "replay_buffer.snapshots.npz").exists()
+    reference.set_env(make_env())
+    reference.env.seed(reference.seed)
+    reference.learn(100, reset_num_timesteps=False)
+
+    def resumed(with_snapshots: bool):
+        model = pevfa_class.load(tmp_path / "model", env=make_env(), restore_rng_state=True)
+        if with_snapshots:
+            model.load_replay_buffer(tmp_path / "replay_buffer")
+        else:  # SB3's replay buffer alone
+            OffPolicyAlgorithm.load_replay_buffer(model, tmp_path / "replay_buffer.pkl")
+        return model.learn(100, reset_num_timesteps=False)
+
+    model = resumed(with_snapshots=True)
+    assert model.history.policy_ids == reference.history.policy_ids
+    for got, want in zip(model.policy.state_dict().values(), reference.policy.state_dict().values()):
+        assert th.equal(got, want)
+    without = resumed(with_snapshots=False).policy.state_dict().values()
+    assert any(not th.equal(a, b) for a, b in zip(without, reference.policy.state_dict().values()))

@@ -34,6 +34,7 @@ from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch.nn import functional as F
 
+from sb3_pevfa.common.rng_states import RngStatesInFile
 from sb3_pevfa.pevfa import episodes, fast_path
 from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments, with_saved_critic
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
@@ -52,7 +53,7 @@ SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
 HISTORY_MEMORY_WARNING_BYTES = 4 * 2**30
 
 
-class PeVFAAlgorithm(OnPolicyAlgorithm):
+class PeVFAAlgorithm(RngStatesInFile, OnPolicyAlgorithm):
     """The PeVFA part of an on-policy algorithm; subclasses list it before their SB3 base (see the module)."""
 
     policy: PeVFAActorCriticPolicy
@@ -553,36 +554,22 @@ class PeVFAAlgorithm(OnPolicyAlgorithm):
                 path = moment
         self.load_history(path)
 
-    def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
-        # The global RNG states travel with the model: load(..., restore_rng_state=True) continues from them.
-        self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
-        try:
-            super().save(path, exclude=exclude, include=include)
-        finally:
-            del self._rng_states
-
     @classmethod
     def load(  # type: ignore[override]
         cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any
     ):
-        """SB3's ``load``. The global torch / numpy RNGs are left as SB3 leaves them (it seeds them with the model's
-        seed, if any, while it rebuilds the model). A checkpoint of SB3's ``CheckpointCallback``
-        (``<prefix>_<steps>_steps.zip``) comes with the history saved beside it, if there is one.
+        """SB3's ``load`` (the RNG states as :meth:`RngStatesInFile.load` says). A checkpoint of SB3's
+        ``CheckpointCallback`` (``<prefix>_<steps>_steps.zip``) comes with the history saved beside it, if there is
+        one.
 
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have
         """
-        model = super().load(path, *args, **kwargs)
+        model = super().load(path, *args, restore_rng_state=restore_rng_state, **kwargs)
         history = checkpoint_history(path) if isinstance(path, (str, pathlib.Path)) else None
         if history is not None:  # a checkpoint of CheckpointCallback: its history was saved beside it
             try:
                 model.load_history(history)
             except ValueError as error:  # e.g. loaded without its VecNormalize env (rl-zoo3's enjoy): the model is fine
                 warnings.warn(f"The checkpoint's history {history} was not loaded: {error}", stacklevel=2)
-        rng_states = model.__dict__.pop("_rng_states", None)
-        if restore_rng_state:
-            if rng_states is None:
-                raise ValueError(f"{path} holds no RNG states (saved by another version): load without restore_rng_state")
-            th.set_rng_state(rng_states["torch"])
-            np.random.set_state(rng_states["numpy"])
         return model

@@ -19,6 +19,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import get_action_dim
 from torch.nn import functional as F
 
+from sb3_pevfa.common.rng_states import RngStatesInFile
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
 
@@ -59,7 +60,14 @@ def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
         )
 
 
-class OffPolicyPeVFA(OffPolicyAlgorithm):
+def snapshots_path(replay_buffer_path: str | pathlib.Path) -> pathlib.Path:
+    """Where the snapshots saved with a replay buffer go: ``replay_buffer.pkl`` -> ``replay_buffer.snapshots.npz``."""
+    path = pathlib.Path(replay_buffer_path)
+    path = path if path.suffix == ".pkl" else path.with_name(path.name + ".pkl")  # SB3 adds .pkl where it is missing
+    return path.with_suffix(".snapshots.npz")
+
+
+class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
     """The snapshot history and its critic updates; subclasses list it before their SB3 base and implement
     :meth:`_snapshot_actions` (and :meth:`_entropy_term` where the target has one)."""
 
@@ -196,6 +204,19 @@ class OffPolicyPeVFA(OffPolicyAlgorithm):
     def save_history(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Save the snapshots (``.npz``, apart from the model, as the replay buffer is)."""
         self.history.save(path)
+
+    def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
+        """SB3's, and the snapshots beside a file path (:func:`snapshots_path`): what rl-zoo3's
+        ``--save-replay-buffer`` and SB3's ``CheckpointCallback(save_replay_buffer=True)`` save then travels whole."""
+        super().save_replay_buffer(path)
+        if isinstance(path, (str, pathlib.Path)):
+            self.save_history(snapshots_path(path))
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """SB3's, and the snapshots saved beside it by :meth:`save_replay_buffer`, where they are (rl-zoo3's ``-i``)."""
+        super().load_replay_buffer(path, truncate_last_traj)
+        if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
+            self.load_history(snapshots_path(path))
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Load snapshots saved by :meth:`save_history`; the live actor's code becomes the latest snapshot's."""
