@@ -18,6 +18,7 @@ from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.rl_zoo import ALGO_NAME, ALGORITHMS, HYPERPARAMS_PATH, HYPERPARAMS_PATHS, register
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+OFF_POLICY = ("sac_pevfa", "td3_pevfa")
 ENV = {**os.environ, "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
@@ -53,13 +54,17 @@ def test_shipped_hyperparameters(algo):
     assert (ROOT / "hyperparams" / f"{algo}.yml").read_text() == path.read_text()
     config = yaml.safe_load(path.read_text())
     tasks = ["Hopper", "HalfCheetah", "Walker2d", "Ant", "InvertedPendulum", "InvertedDoublePendulum", "Swimmer", "Humanoid"]
-    expected = {f"{task}-v5" for task in tasks} | {
-        "CartPole-v1",
-        "Pendulum-v1",
-        "Acrobot-v1",
-        "MountainCarContinuous-v0",
-        "LunarLander-v3",
-    }
+    if algo in OFF_POLICY:  # continuous actions: rl-zoo3's entries but SAC's with gSDE
+        expected = {f"{task}-v5" for task in tasks} | {"Pendulum-v1", "LunarLanderContinuous-v3"}
+        expected |= {"MountainCarContinuous-v0", "BipedalWalker-v3"} if algo == "td3_pevfa" else set()
+    else:
+        expected = {f"{task}-v5" for task in tasks} | {
+            "CartPole-v1",
+            "Pendulum-v1",
+            "Acrobot-v1",
+            "MountainCarContinuous-v0",
+            "LunarLander-v3",
+        }
     assert expected <= set(config)
     base = algo.removesuffix("_pevfa")
     zoo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / f"{base}.yml").read_text())
@@ -75,8 +80,9 @@ def test_shipped_hyperparameters(algo):
             {"history_train_freq"} if tuned else set()
         ), env_id
         assert not tuned or params["history_train_freq"] == 160
-        source = next((zoo[k] for k in (env_id, env_id.replace("-v5", "-v4"), env_id.replace("-v5", "-v2")) if k in zoo), None)
-        if source is not None:  # the PPO / A2C part is rl-zoo3's, unchanged
+        names = (env_id, env_id.replace("-v5", "-v4"), env_id.replace("-v5", "-v2"))
+        source = next((zoo[k] for k in names if k in zoo), zoo["default"] if algo in OFF_POLICY else None)
+        if source is not None:  # the PPO / A2C / SAC / TD3 part is rl-zoo3's, unchanged
             assert {k: v for k, v in params.items() if k not in PEVFA_ARGUMENTS} == {
                 **source,
                 "n_timesteps": float(source["n_timesteps"]),
@@ -250,10 +256,22 @@ def test_sampler_and_converter_agree(space, algo):
         study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
         for _ in range(20):
             trial = study.ask()
-            sampled = SAMPLERS[algo](trial, 1, 1, {})
-            assert CONVERTERS[algo](trial.params) == sampled
-            kwargs = {k: v for k, v in sampled.items() if k != "n_steps"}
-            model = ALGORITHMS[algo]("MlpPolicy", "CartPole-v1", **kwargs, n_steps=64)
+            sampled = SAMPLERS[algo](trial, 1, 1, {"using_her_replay_buffer": False})
+            converted = CONVERTERS[algo](trial.params)
+            # TD3: the converter keeps rl-zoo3's noise_type / noise_std, which its experiment manager turns into the
+            # action noise that the sampler builds
+            noise_type, noise_std = converted.pop("noise_type", None), converted.pop("noise_std", None)
+            noise = sampled.pop("action_noise", None)
+            assert converted == sampled
+            kinds = {None: None, "normal": "NormalActionNoise", "ornstein-uhlenbeck": "OrnsteinUhlenbeckActionNoise"}
+            assert kinds[noise_type] == (type(noise).__name__ if noise is not None else None)
+            assert noise is None or np.allclose(noise._sigma, noise_std)
+            sampled = {**sampled, **({"action_noise": noise} if noise is not None else {})}
+            if algo in OFF_POLICY:
+                model = ALGORITHMS[algo]("MlpPolicy", "Pendulum-v1", **sampled)
+            else:
+                kwargs = {k: v for k, v in sampled.items() if k != "n_steps"}
+                model = ALGORITHMS[algo]("MlpPolicy", "CartPole-v1", **kwargs, n_steps=64)
             assert model.policy.representation_name == sampled["representation"]
             study.tell(trial, 0.0)
     finally:
@@ -345,3 +363,71 @@ def test_headless_enjoy_and_video_of_a_mujoco_task(tmp_path):
                             env=egl, capture_output=True, text=True, timeout=600)  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert list(out.glob("*.mp4"))
+
+
+OFF_POLICY_ENTRIES = [
+    (algo, entry) for algo in OFF_POLICY for entry in sorted(yaml.safe_load(HYPERPARAMS_PATHS[algo].read_text()))
+]
+
+
+@pytest.mark.parametrize(("algo", "entry"), OFF_POLICY_ENTRIES)
+def test_every_shipped_off_policy_entry_builds_a_model(algo, entry, tmp_path):
+    """rl-zoo3's experiment manager builds SACPeVFA / TD3PeVFA from each entry whose env is installed here, with the
+    entry's SAC / TD3 settings and its representation."""
+    import argparse
+
+    import gymnasium as gym
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    try:
+        gym.make(entry).close()
+    except (gym.error.DependencyNotInstalled, gym.error.NameNotFound, ImportError) as error:
+        pytest.skip(f"{entry} cannot be made here: {error}")
+    register()
+    manager = ExperimentManager(argparse.Namespace(), algo, entry, str(tmp_path), n_timesteps=1000, eval_freq=-1,
+                                config=str(HYPERPARAMS_PATHS[algo]), verbose=0)  # fmt: skip
+    model, _ = manager.setup_experiment()
+    params = yaml.safe_load(HYPERPARAMS_PATHS[algo].read_text())[entry]
+    assert isinstance(model, ALGORITHMS[algo]) and model.policy.representation_name == params["representation"]
+    assert model.learning_starts == params.get("learning_starts", 100) and model.gamma == params.get("gamma", 0.99)
+    assert model.batch_size == params.get("batch_size", 256) and model.buffer_size == params.get("buffer_size", 1_000_000)
+    model.env.close()
+
+
+@pytest.mark.parametrize("algo", OFF_POLICY)
+def test_zoo_trains_and_continues_off_policy_pevfa_with_its_snapshots(algo, tmp_path):
+    """--save-replay-buffer saves the snapshots beside the replay buffer, and -i continues with both."""
+    args = ["--env", "Pendulum-v1", "-f", str(tmp_path), "--seed", "0", "--save-replay-buffer", "--eval-freq", "-1",
+            "--hyperparams", "learning_starts:100", "snapshot_freq:50", "buffer_size:5000"]  # fmt: skip
+    log = _run("-m", "sb3_pevfa.train", "--algo", algo, "-n", "300", *args, cwd=tmp_path)
+    assert "Loading hyperparameters from: " + str(HYPERPARAMS_PATHS[algo]) in log
+    run = tmp_path / algo / "Pendulum-v1_1"
+    first = ALGORITHMS[algo].load(run / "Pendulum-v1.zip")
+    first.load_replay_buffer(run / "replay_buffer.pkl")
+    assert first.history.policy_ids == [0, 1, 2, 3, 4] and first.replay_buffer.size() == 300  # 200 gradient steps
+    # rl-zoo3 learns on with reset_num_timesteps: learning_starts again, then 100 gradient steps
+    _run("-m", "sb3_pevfa.train", "--algo", algo, "-n", "200", "-i", str(run / "Pendulum-v1.zip"), *args, cwd=tmp_path)
+    second = ALGORITHMS[algo].load(tmp_path / algo / "Pendulum-v1_2" / "Pendulum-v1.zip")
+    second.load_replay_buffer(tmp_path / algo / "Pendulum-v1_2" / "replay_buffer.pkl")
+    assert second.history.policy_ids == [0, 1, 2, 3, 4, 5, 6] and second.replay_buffer.size() == 500
+    np.testing.assert_array_equal(second.history.records([3])["params"], first.history.records([3])["params"])
+
+
+def test_zoo_optimizes_sac_pevfa_then_reruns_a_trial(tmp_path):
+    storage = tmp_path / "study.log"
+    log = _run("-m", "sb3_pevfa.train", "--algo", "sac_pevfa", "--env", "Pendulum-v1", "-optimize", "--n-trials", "2",
+               "-n", "200", "--search-space", "small", "--storage", str(storage), "--study-name", "zoo",
+               "--n-evaluations", "1", "--eval-episodes", "1", "-f", str(tmp_path), "--no-optim-plots", "--seed", "1",
+               "--hyperparams", "learning_starts:50", cwd=tmp_path)  # fmt: skip
+    assert "Number of finished trials:  2" in log
+    study = optuna.load_study(
+        storage=optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(storage))), study_name="zoo"
+    )
+    params = study.trials[1].params
+    assert {"representation", "snapshot_freq", "history_train_freq", "batch_size_pow", "tau"} <= set(params)
+    _run("-m", "sb3_pevfa.train", "--algo", "sac_pevfa", "--env", "Pendulum-v1", "-n", "100", "--search-space", "small",
+         "--storage", str(storage), "--study-name", "zoo", "--trial-id", "1", "-f", str(tmp_path / "rerun"),
+         "--eval-freq", "-1", "--hyperparams", "learning_starts:50", cwd=tmp_path)  # fmt: skip
+    saved = _saved_config(next((tmp_path / "rerun").rglob("config.yml")))
+    assert saved["representation"] == params["representation"] and saved["snapshot_freq"] == params["snapshot_freq"]
+    assert saved["batch_size"] == 2 ** params["batch_size_pow"] and saved["tau"] == pytest.approx(params["tau"])

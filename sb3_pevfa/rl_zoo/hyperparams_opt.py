@@ -1,11 +1,18 @@
-"""Optuna samplers and trial converters of ``ppo_pevfa`` and ``a2c_pevfa`` for rl-zoo3: the base algorithm's
-parameters (rl-zoo3's own space) plus PeVFA's."""
+"""Optuna samplers and trial converters of ``ppo_pevfa``, ``a2c_pevfa``, ``sac_pevfa`` and ``td3_pevfa`` for
+rl-zoo3: the base algorithm's parameters (rl-zoo3's own space) plus PeVFA's."""
 
 import math
 from typing import Any
 
 import optuna
-from rl_zoo3.hyperparams_opt import convert_onpolicy_params, sample_a2c_params, sample_ppo_params
+from rl_zoo3.hyperparams_opt import (
+    convert_offpolicy_params,
+    convert_onpolicy_params,
+    sample_a2c_params,
+    sample_ppo_params,
+    sample_sac_params,
+    sample_td3_params,
+)
 
 #: Raw (trial) parameters that belong to PeVFA; the rest are rl-zoo3's PPO parameters.
 PEVFA_PARAMS = (
@@ -109,6 +116,50 @@ def sample_a2c_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, ad
     return _with_fixed_params({**a2c, **_sample_pevfa_params(trial, small, a2c.get("n_steps", 5) * n_envs)})
 
 
+#: Raw (trial) parameters of the off-policy PeVFA algorithms' snapshots; the rest are rl-zoo3's SAC / TD3 parameters.
+OFF_POLICY_PEVFA_PARAMS = ("representation", "embedding_dim", "snapshot_freq", "history_train_freq")
+
+
+def convert_off_policy_pevfa_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """Converter of ``sac_pevfa`` and ``td3_pevfa`` (``HYPERPARAMS_CONVERTER``): rl-zoo3's off-policy conversion, the
+    PeVFA parameters as they are (they are the constructor's)."""
+    base = {key: value for key, value in sampled_params.items() if key not in OFF_POLICY_PEVFA_PARAMS}
+    return {**convert_offpolicy_params(base), **{k: v for k, v in sampled_params.items() if k in OFF_POLICY_PEVFA_PARAMS}}
+
+
+def _sample_off_policy_pevfa_params(trial: optuna.Trial) -> dict[str, Any]:
+    """Representation (OPR, its random-code control, or none), embedding size, snapshot interval and the gradient
+    steps per snapshot update."""
+    small = SEARCH_SPACE["name"] == "small"
+    representation = trial.suggest_categorical("representation", ["opr", "random"] if small else ["opr", "random", "none"])
+    sampled: dict[str, Any] = {"representation": representation}
+    if representation != "none":
+        sampled["embedding_dim"] = trial.suggest_categorical("embedding_dim", [8, 16] if small else [16, 32, 64, 128])
+    sampled["snapshot_freq"] = trial.suggest_categorical("snapshot_freq", [10, 20] if small else [250, 500, 1000, 2000])
+    sampled["history_train_freq"] = trial.suggest_categorical("history_train_freq", [1, 2, 4, 8])
+    return sampled
+
+
+def sample_sac_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Sampler of ``sac_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's SAC space plus the snapshots'."""
+    return {**sample_sac_params(trial, n_actions, n_envs, additional_args), **_sample_off_policy_pevfa_params(trial)}
+
+
+def sample_td3_pevfa_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Sampler of ``td3_pevfa`` (``HYPERPARAMS_SAMPLER``): rl-zoo3's TD3 space plus the snapshots'."""
+    return {**sample_td3_params(trial, n_actions, n_envs, additional_args), **_sample_off_policy_pevfa_params(trial)}
+
+
 #: Sampler and converter of each PeVFA algorithm, by rl-zoo3 name.
-SAMPLERS = {"ppo_pevfa": sample_ppo_pevfa_params, "a2c_pevfa": sample_a2c_pevfa_params}
-CONVERTERS = {"ppo_pevfa": convert_ppo_pevfa_params, "a2c_pevfa": convert_ppo_pevfa_params}
+SAMPLERS = {
+    "ppo_pevfa": sample_ppo_pevfa_params,
+    "a2c_pevfa": sample_a2c_pevfa_params,
+    "sac_pevfa": sample_sac_pevfa_params,
+    "td3_pevfa": sample_td3_pevfa_params,
+}
+CONVERTERS = {
+    "ppo_pevfa": convert_ppo_pevfa_params,
+    "a2c_pevfa": convert_ppo_pevfa_params,
+    "sac_pevfa": convert_off_policy_pevfa_params,
+    "td3_pevfa": convert_off_policy_pevfa_params,
+}
