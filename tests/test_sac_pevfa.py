@@ -32,7 +32,7 @@ def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_c
     ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, **tiny())
 
     def compared() -> tuple[dict, dict]:
-        mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if "behaviour_codes" not in k}
+        mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if not k.endswith(("_codes", "_states"))}
         return mine, sb3.policy.state_dict()
 
     mine, theirs = compared()
@@ -181,7 +181,8 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        (dict(representation="spr"), r"valid choices: \('opr', 'random', 'none'\)"),
+        (dict(representation="rpr"), r"valid choices: \('opr', 'spr', 'fingerprint', 'random', 'none'\)"),
+        (dict(representation="spr", n_state_action_pairs=0), "spr' needs n_state_action_pairs > 0"),
         (dict(snapshot_freq=0), "snapshot_freq must be an int >= 1"),
         (dict(history_batch_size=30, history_batch_policies=8), "must be a multiple of history_batch_policies"),
         (dict(use_sde=True), "use_sde=True is not supported"),
@@ -208,8 +209,8 @@ def test_several_envs_under_vecnormalize():
     assert seen and all(e is env for e in seen)  # the snapshots' transitions in today's normalization, as SB3's
 
 
-@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
-def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class):
+@pytest.mark.parametrize(("pevfa_class", "representation"), [(SACPeVFA, "opr"), (TD3PeVFA, "opr"), (SACPeVFA, "spr")])
+def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class, representation):
     """Model, replay buffer and snapshots saved, RNG states restored: learning on continues bit for bit (the envs
     seeded and reset at the resume in both runs, as SB3's load does)."""
     from stable_baselines3.common.env_util import make_vec_env
@@ -217,7 +218,8 @@ def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tm
     def make_env():
         return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
 
-    kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4, **tiny())
+    kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4,
+                  representation=representation, n_state_action_pairs=8, **tiny())  # fmt: skip
     reference = pevfa_class("MlpPolicy", make_env(), **kwargs)
     reference.learn(200)
     reference.save(tmp_path / "model")
@@ -241,3 +243,38 @@ def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tm
         assert th.equal(got, want)
     without = resumed(with_snapshots=False).policy.state_dict().values()
     assert any(not th.equal(a, b) for a, b in zip(without, reference.policy.state_dict().values()))
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_spr_records_each_snapshots_deterministic_actions_at_replay_states(pevfa_class):
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", representation="spr", n_state_action_pairs=16, **tiny())
+    model.learn(150)
+    snapshot, records, _, _ = snapshot_then_move_on(model)
+    states = records.states[0]
+    assert states.shape == (16, 3) and th.equal(model.policy.critic.pair_states, states)  # the live actor's states
+    with th.no_grad():
+        expected = snapshot(states, deterministic=True) if pevfa_class is SACPeVFA else snapshot(states)
+    th.testing.assert_close(records.actions[0], expected, atol=1e-6, rtol=0)
+    live = model.policy.critic.actor_record()  # the live actor (moved on): its own actions at the same states
+    th.testing.assert_close(live.actions[0], model.policy._predict(states, deterministic=True), atol=0, rtol=0)
+    assert not th.allclose(live.actions[0], expected, atol=1e-3)
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay_buffer(pevfa_class):
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", representation="fingerprint", **tiny())
+    model.learn(101)  # one gradient step: the first snapshot set the probes, 32 evenly spaced of 101 stored steps
+    representation = model.policy.critic.representation
+    rows = np.arange(32) * 101 // 32
+    expected = th.as_tensor(model.replay_buffer.observations[rows, 0])
+    assert bool(representation.probes_set) and th.equal(model.policy.critic_target.representation.probes, expected)
+    snapshot, records, _, _ = snapshot_then_move_on(model)
+    probes = representation.probes.detach()
+    with th.no_grad():
+        features = representation.distribution_parameters(records.params)[0]
+        if pevfa_class is SACPeVFA:  # the mean and log-std heads
+            latent = snapshot.latent_pi(probes)
+            wanted = th.cat([snapshot.mu(latent), snapshot.log_std(latent)], dim=1)
+        else:  # the deterministic action
+            wanted = snapshot(probes)
+    th.testing.assert_close(features, wanted, atol=1e-5, rtol=0)

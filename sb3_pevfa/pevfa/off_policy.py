@@ -35,7 +35,7 @@ SNAPSHOT_ARGUMENTS = (
 
 
 #: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``)
-POLICY_ARGUMENTS = ("representation", "embedding_dim", "representation_kwargs")
+POLICY_ARGUMENTS = ("representation", "embedding_dim", "representation_kwargs", "n_state_action_pairs")
 
 
 def off_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[str, Any]) -> dict[str, Any]:
@@ -89,6 +89,7 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         representation: str = "opr",
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
+        n_state_action_pairs: int = 200,
         snapshot_freq: int = 1000,
         history_max_policies: int = 100,
         history_train_freq: int = 2,
@@ -123,7 +124,7 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
             self.observation_space,
             self.action_space,
             critic.layout.n_params,
-            n_state_action_pairs=0,
+            n_state_action_pairs=critic.pair_states.shape[0],
             code_dim=critic.behaviour_codes.numel(),
             buffer_size=1,  # records only: the replay buffer holds the transitions
             max_policies=self.history_max_policies,
@@ -136,17 +137,46 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         return [*super()._excluded_save_params(), "history"]
 
     # ------------------------------------------------------------------ snapshots
+    def _replay_states(self, n: int, evenly: bool = False) -> th.Tensor:
+        """``n`` replay observations as the actor reads them (normalised where a VecNormalize is), flattened: drawn
+        uniformly, or ``evenly`` spaced over those stored so far (the fingerprint's probes, no random draw)."""
+        buffer = self.replay_buffer
+        if not evenly:
+            observations = buffer.sample(n, env=self._vec_normalize_env).observations  # type: ignore[union-attr]
+        else:
+            stored = buffer.buffer_size if buffer.full else buffer.pos  # type: ignore[union-attr]
+            rows = np.arange(n) * stored // n
+            raw = buffer.observations[rows, 0]  # type: ignore[union-attr]
+            observations = buffer.to_torch(buffer._normalize_obs(raw, self._vec_normalize_env))  # type: ignore[union-attr]
+        with th.no_grad():
+            return self.actor.extract_features(observations, self.actor.features_extractor)
+
     def record_snapshot(self) -> int:
-        """Record the live actor (its flat parameters, a random code) and make its code the critics'; its id."""
-        critic = self.policy.critic
-        params = critic.layout.flatten(self.policy).cpu().numpy()
-        code = self.history.rng.uniform(-1.0, 1.0, size=self.history.code_dim).astype(np.float32)
-        record = {"params": params, "codes": code, "states": np.zeros((0, state_dim(self.observation_space)), np.float32),
-                  "actions": np.zeros((0, get_action_dim(self.action_space)), np.float32)}  # fmt: skip
+        """Record the live actor (its flat parameters; its actions at replay states for ``spr``; a random code) and make
+        its states and code the critics'; its id. The first one also sets the fingerprint's probe states."""
+        critic, target = self.policy.critic, self.policy.critic_target
+        rows = critic.representation.rollout_rows(self.replay_buffer.size())  # type: ignore[union-attr]
+        if rows is not None:  # the fingerprint's probes, once: evenly spaced replay states
+            features = self._replay_states(len(rows), evenly=True)
+            for module in (critic, target):
+                module.representation.observe_rollout(features)
+        states = self._replay_states(self.history.n_state_action_pairs) if self.history.n_state_action_pairs else None
+        with th.no_grad():
+            for module in (critic, target):
+                if states is not None:
+                    module.pair_states.copy_(states)
+        record = {
+            "params": critic.layout.flatten(self.policy).cpu().numpy(),
+            "codes": self.history.rng.uniform(-1.0, 1.0, size=self.history.code_dim).astype(np.float32),
+            "states": np.zeros((0, state_dim(self.observation_space)), np.float32),
+            "actions": np.zeros((0, get_action_dim(self.action_space)), np.float32),
+        }
+        if states is not None:
+            record.update(states=states.cpu().numpy(), actions=critic.actor_actions(states).cpu().numpy())
         policy_id = self.history.add_record(record, n_updates=self._n_updates, num_timesteps=self.num_timesteps)
         with th.no_grad():
-            for module in (critic, self.policy.critic_target):
-                module.behaviour_codes.copy_(th.as_tensor(code))
+            for module in (critic, target):
+                module.behaviour_codes.copy_(th.as_tensor(record["codes"]))
         return policy_id
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
@@ -219,11 +249,13 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
             self.load_history(snapshots_path(path))
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
-        """Load snapshots saved by :meth:`save_history`; the live actor's code becomes the latest snapshot's."""
+        """Load snapshots saved by :meth:`save_history`; the live actor's code and states become the latest
+        snapshot's."""
         self.history.load(path)
         latest = self.history.latest_policy_id
-        if latest is not None and self.history.code_dim:
-            code = th.as_tensor(self.history.records([latest], fields=("codes",))["codes"][0])
+        if latest is not None:
+            record = self.history.records([latest], fields=("codes", "states"))
             with th.no_grad():
                 for module in (self.policy.critic, self.policy.critic_target):
-                    module.behaviour_codes.copy_(code)
+                    module.behaviour_codes.copy_(th.as_tensor(record["codes"][0]))
+                    module.pair_states.copy_(th.as_tensor(record["states"][0]))

@@ -14,6 +14,7 @@ TD3's ``q1_forward``), chi is computed without one. The flat copy is taken once 
 
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
@@ -25,11 +26,12 @@ from torch.nn import functional as F
 
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
-from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, state_dim
 from sb3_pevfa.pevfa.representations import make_representation
 
-#: Representations an off-policy critic can read: the actor's parameters, a random code per snapshot, or nothing
-OFF_POLICY_REPRESENTATIONS = ("opr", "random", "none")
+#: Representations an off-policy critic can read: the actor's parameters, its actions at replay states, its outputs
+#: at learned probe states, a random code per snapshot, or nothing
+OFF_POLICY_REPRESENTATIONS = ("opr", "spr", "fingerprint", "random", "none")
 
 
 class QStream(nn.Module):
@@ -84,6 +86,7 @@ class PeVFAContinuousCritic(BaseModel):
         representation: str = "opr",
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
+        n_state_action_pairs: int = 0,
         embedding_arch: tuple[int, ...] = (64,),
         head_arch: tuple[int, ...] | None = None,
         critic_activation_fn: type[nn.Module] = nn.ReLU,
@@ -117,6 +120,8 @@ class PeVFAContinuousCritic(BaseModel):
         )
         #: The live actor's random code (``random``): its latest snapshot's
         self.register_buffer("behaviour_codes", th.zeros(embedding_dim if representation == "random" else 0))
+        #: The states of the live actor's state-action pairs (``spr``): its latest snapshot's
+        self.register_buffer("pair_states", th.zeros(n_state_action_pairs, state_dim(observation_space)))
         #: The live actor's chi carries a gradient into the encoder in the critic's loss (else only explicit chi do,
         #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
         self.live_chi_gradient = True
@@ -146,10 +151,21 @@ class PeVFAContinuousCritic(BaseModel):
         flatten = lambda: self.layout.flatten(self.actor_holder[0]).to(self.behaviour_codes.device)[None]  # noqa: E731
         return self._cached("params", self._actor_key(), flatten)
 
+    def actor_actions(self, states: th.Tensor) -> th.Tensor:
+        """The live actor's deterministic actions (SAC: its squashed mean) at flat states, without gradient."""
+        with th.no_grad():
+            return self.actor_holder[0]._predict(states, deterministic=True)
+
     def actor_record(self) -> PolicyRecord:
-        """The live actor's record: its flat parameters (a copy, without gradient) and its latest snapshot's code."""
+        """The live actor's record: its flat parameters (a copy, without gradient), its actions at its latest
+        snapshot's states and that snapshot's code."""
+        states = self.pair_states
+        key = (*self._actor_key(), states.data_ptr(), states._version)
+        actions = self._cached("actions", key, lambda: self.actor_actions(states)) if len(states) else None
         empty = self.behaviour_codes.new_zeros(1, 0)
-        return PolicyRecord(self._actor_params(), empty, empty, self.behaviour_codes[None])
+        if actions is None:
+            return PolicyRecord(self._actor_params(), empty, empty, self.behaviour_codes[None])
+        return PolicyRecord(self._actor_params(), states[None], actions[None], self.behaviour_codes[None])
 
     def live_embedding(self, grad: bool = True) -> th.Tensor:
         """chi of the live actor, ``(1, embedding_dim)``, with gradient into the encoder where ``grad`` and gradients
@@ -159,7 +175,7 @@ class PeVFAContinuousCritic(BaseModel):
         record = self.actor_record()
         if grad and th.is_grad_enabled():
             return self.representation(record)
-        tensors = (self.behaviour_codes, *self.representation.parameters())
+        tensors = (self.behaviour_codes, self.pair_states, *self.representation.parameters())
         key = (*self._actor_key(), *((t.data_ptr(), t._version) for t in tensors))
         with th.no_grad():
             return self._cached("chi", key, lambda: self.representation(record))
@@ -196,9 +212,11 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
     ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them). The training mode is
     set in one pass over the actor's and the critic's modules (the target critic stays in evaluation mode, as SB3's).
 
-    :param representation: ``opr`` (the actor's parameters), ``random`` (a code per snapshot) or ``none``
+    :param representation: ``opr`` (the actor's parameters), ``spr`` (its actions at replay states), ``fingerprint``
+        (its outputs at learned probe states), ``random`` (a code per snapshot) or ``none``
     :param embedding_dim: Size of chi
     :param representation_kwargs: Keyword arguments of the representation
+    :param n_state_action_pairs: State-action pairs of each snapshot (``spr`` only)
     :param critic_embedding_arch: The embedding stream of chi
     :param critic_head_arch: Layers after the state-action stream and chi's are concatenated; None (default): the last
         layer of ``net_arch["qf"]``, the stream the layers before it (SB3's critic, chi entering its last hidden layer)
@@ -218,6 +236,7 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         representation: str = "opr",
         embedding_dim: int = 64,
         representation_kwargs: dict[str, Any] | None = None,
+        n_state_action_pairs: int = 200,
         critic_embedding_arch: list[int] | tuple[int, ...] = (64,),
         critic_head_arch: list[int] | tuple[int, ...] | None = None,
         critic_activation_fn: type[nn.Module] = nn.ReLU,
@@ -227,12 +246,18 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
     ):
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
+        if isinstance(n_state_action_pairs, bool) or not isinstance(n_state_action_pairs, (int, np.integer)):
+            raise ValueError(f"n_state_action_pairs must be an int, got {n_state_action_pairs!r}")
+        if representation == "spr" and n_state_action_pairs <= 0:
+            raise ValueError("representation='spr' needs n_state_action_pairs > 0")
         self.representation_name = representation
+        self.n_state_action_pairs = int(n_state_action_pairs)
         self.fused_critic_optimizer = bool(fused_critic_optimizer)
         self.pevfa_kwargs = dict(
             representation=representation,
             embedding_dim=embedding_dim,
             representation_kwargs=dict(representation_kwargs or {}),
+            n_state_action_pairs=int(n_state_action_pairs) if representation == "spr" else 0,
             embedding_arch=tuple(critic_embedding_arch),
             head_arch=None if critic_head_arch is None else tuple(critic_head_arch),
             critic_activation_fn=critic_activation_fn,
@@ -267,6 +292,7 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
             representation=kwargs["representation"],
             embedding_dim=kwargs["embedding_dim"],
             representation_kwargs=kwargs["representation_kwargs"],
+            n_state_action_pairs=self.n_state_action_pairs,
             critic_embedding_arch=kwargs["embedding_arch"],
             critic_head_arch=kwargs["head_arch"],
             critic_activation_fn=kwargs["critic_activation_fn"],

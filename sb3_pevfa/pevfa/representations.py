@@ -199,8 +199,16 @@ class FingerprintPolicyRepresentation(PolicyRepresentation):
                 "representation='fingerprint' evaluates the recorded actors: their policy_net must be [nn.Linear, "
                 "activation] pairs (SB3's MlpExtractor)"
             )
-        if isinstance(action_space, spaces.Box) and not layout.log_std_numel:
-            raise ValueError("representation='fingerprint' of a Box action space needs a Gaussian actor with a log-std")
+        if (
+            isinstance(action_space, spaces.Box)
+            and not layout.log_std_numel
+            and layout.heads == 1
+            and layout.mean_activation_fn is None
+        ):
+            raise ValueError(
+                "representation='fingerprint' of a Box action space needs a Gaussian actor with a log-std (or SAC's "
+                "two heads, or TD3's deterministic actor)"
+            )
         if isinstance(n_probes, bool) or not isinstance(n_probes, (int, np.integer)) or n_probes <= 0:
             raise ValueError(f"n_probes must be a positive int, got {n_probes!r}")
         if any(int(size) <= 0 for size in encoder_arch):
@@ -209,11 +217,14 @@ class FingerprintPolicyRepresentation(PolicyRepresentation):
         self.action_space = action_space
         self.n_probes = int(n_probes)
         out_dim = layout.linear_shapes[-1][0]
+        head_dims = sum(shape[0] for shape in layout.linear_shapes[len(layout.linear_shapes) - layout.heads :])
         self.sde: StateDependentNoiseDistribution | None = None
         if len(layout.log_std_shape) == 2:  # gSDE: a (latent, 1 or action_dim) log-std matrix
             self.sde = StateDependentNoiseDistribution(out_dim, layout.log_std_shape[1] > 1, layout.use_expln)
             self.sde.latent_sde_dim = layout.log_std_shape[0]
-        self.n_features = 2 * out_dim if isinstance(action_space, spaces.Box) else out_dim
+        # Box: the mean and the log-std (an on-policy Gaussian's own or SAC's head, its outputs side by side) or
+        # TD3's deterministic action alone; the others: the logits of every action
+        self.n_features = head_dims + (out_dim if isinstance(action_space, spaces.Box) and layout.log_std_numel else 0)
         self.probes = nn.Parameter(th.zeros(self.n_probes, layout.linear_shapes[0][1]))
         self.register_buffer("probes_set", th.zeros(()))  # 1.0 once set (a float, as the policy's has_behaviour)
         self.encoder = _mlp(self.n_probes * self.n_features, (*encoder_arch, embedding_dim), activation_fn)
@@ -231,6 +242,8 @@ class FingerprintPolicyRepresentation(PolicyRepresentation):
     def distribution_parameters(self, params: th.Tensor) -> th.Tensor:
         """The action distribution's parameters of ``P`` actors at every probe state, ``(P, n_probes, n_features)``."""
         latent, outputs = self.layout.evaluate(params, self.probes)
+        if isinstance(self.action_space, spaces.Box) and not self.layout.log_std_numel:
+            return outputs  # SAC's mean and log-std heads, TD3's action
         if isinstance(self.action_space, spaces.Box):
             log_std = self.layout.split(params)[1]
             if self.sde is None:

@@ -128,10 +128,11 @@ def convert_off_policy_pevfa_params(sampled_params: dict[str, Any]) -> dict[str,
 
 
 def _sample_off_policy_pevfa_params(trial: optuna.Trial) -> dict[str, Any]:
-    """Representation (OPR, its random-code control, or none), embedding size, snapshot interval and the gradient
-    steps per snapshot update."""
+    """Representation (OPR, SPR, the fingerprint, the random-code control, or none), embedding size, snapshot
+    interval and the gradient steps per snapshot update."""
     small = SEARCH_SPACE["name"] == "small"
-    representation = trial.suggest_categorical("representation", ["opr", "random"] if small else ["opr", "random", "none"])
+    choices = ["opr", "random"] if small else ["opr", "spr", "fingerprint", "random", "none"]
+    representation = trial.suggest_categorical("representation", choices)
     sampled: dict[str, Any] = {"representation": representation}
     if representation != "none":
         sampled["embedding_dim"] = trial.suggest_categorical("embedding_dim", [8, 16] if small else [16, 32, 64, 128])

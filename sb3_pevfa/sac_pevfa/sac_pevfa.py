@@ -21,9 +21,11 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
 
     Parameters not listed are SAC's (:class:`~stable_baselines3.SAC`, passed by keyword).
 
-    :param representation: ``opr``, ``random`` or ``none``
+    :param representation: ``opr``, ``spr``, ``fingerprint``, ``random`` or ``none``
     :param embedding_dim: Size of chi
     :param representation_kwargs: Keyword arguments of the representation
+    :param n_state_action_pairs: State-action pairs of each snapshot (``spr``): its deterministic actions at replay
+        states drawn when it is recorded
     :param snapshot_freq: Gradient steps between two snapshots of the actor
     :param history_max_policies: Snapshots kept (the oldest go first)
     :param history_train_freq: Gradient steps per critic update on the snapshots; 0 turns them off
