@@ -278,3 +278,34 @@ def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay
         else:  # the deterministic action
             wanted = snapshot(probes)
     th.testing.assert_close(features, wanted, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_a_copied_policy_keeps_its_chi_fresh_and_inference_mode_leaves_no_cache(pevfa_class):
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(110)
+    policy = copy.deepcopy(model.policy)  # its optimizers come without their step hooks: registered again
+    critic = policy.critic
+    before = critic.live_embedding(grad=False)
+    observations, actions = th.randn(8, 3), th.rand(8, 1)
+    loss = sum(q.sum() for q in critic(observations, actions, critic.live_embedding()))
+    critic.optimizer.zero_grad()
+    loss.backward()
+    critic.optimizer.step()  # a fused Adam: the encoder moves without its version counters
+    assert not th.equal(critic.live_embedding(grad=False), before)
+    with th.inference_mode():
+        model.critic(observations, actions)
+    model.train(1, 32)  # the update does not meet a tensor cached inside inference mode
+
+
+def test_a_replay_buffer_whose_snapshots_do_not_load_leaves_the_model_as_it_was(tmp_path):
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(120)
+    model.save_replay_buffer(tmp_path / "buffer")
+    (tmp_path / "buffer.snapshots.npz").write_text("not a history")
+    other = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    other.learn(105)
+    buffer, ids = other.replay_buffer, other.history.policy_ids
+    with pytest.raises(ValueError, match=r"buffer\.snapshots\.npz"):
+        other.load_replay_buffer(tmp_path / "buffer")
+    assert other.replay_buffer is buffer and other.history.policy_ids == ids

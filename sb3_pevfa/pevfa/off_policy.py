@@ -96,7 +96,7 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         history_batch_size: int = 256,
         history_batch_policies: int = 8,
         history_learning_starts: int = 0,
-        live_encoder_gradient: bool = False,
+        live_encoder_gradient: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         _init_setup_model: bool = True,
         **kwargs: Any,
@@ -146,7 +146,7 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         else:
             stored = buffer.buffer_size if buffer.full else buffer.pos  # type: ignore[union-attr]
             rows = np.arange(n) * stored // n
-            raw = buffer.observations[rows, 0]  # type: ignore[union-attr]
+            raw = buffer.observations[rows, rows % buffer.n_envs]  # type: ignore[union-attr]
             observations = buffer.to_torch(buffer._normalize_obs(raw, self._vec_normalize_env))  # type: ignore[union-attr]
         with th.no_grad():
             return self.actor.extract_features(observations, self.actor.features_extractor)
@@ -213,7 +213,8 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         data = self.replay_buffer.sample(per_policy * n_policies, env=self._vec_normalize_env)  # type: ignore[union-attr]
         records = PolicyRecord.from_numpy(self.history.records(ids), self.device)
         pairing = th.arange(n_policies, device=self.device).repeat_interleave(per_policy)  # snapshot of each transition
-        discounts = data.discounts if data.discounts is not None else self.gamma
+        discounts = getattr(data, "discounts", None)  # SB3 >= 2.7's n-step returns
+        discounts = self.gamma if discounts is None else discounts
         with th.no_grad():
             features = self.actor.extract_features(data.next_observations, self.actor.features_extractor)
             actions, log_prob = self._snapshot_actions(records, features.reshape(n_policies, per_policy, -1))
@@ -243,10 +244,16 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
             self.save_history(snapshots_path(path))
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """SB3's, and the snapshots saved beside it by :meth:`save_replay_buffer`, where they are (rl-zoo3's ``-i``)."""
+        """SB3's, and the snapshots saved beside it by :meth:`save_replay_buffer`, where they are (rl-zoo3's ``-i``).
+        Where either fails, the model keeps its own."""
+        previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
-            self.load_history(snapshots_path(path))
+            try:
+                self.load_history(snapshots_path(path))  # checked in full before it replaces anything
+            except BaseException:
+                self.replay_buffer = previous
+                raise
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Load snapshots saved by :meth:`save_history`; the live actor's code and states become the latest

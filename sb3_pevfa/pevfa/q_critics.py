@@ -12,6 +12,7 @@ TD3's ``q1_forward``), chi is computed without one. The flat copy is taken once 
 (SB3's target and critic calls of a gradient step read the same one).
 """
 
+import inspect
 from typing import Any
 
 import numpy as np
@@ -119,9 +120,11 @@ class PeVFAContinuousCritic(BaseModel):
             representation, layout, observation_space, action_space, embedding_dim, **(representation_kwargs or {})
         )
         #: The live actor's random code (``random``): its latest snapshot's
-        self.register_buffer("behaviour_codes", th.zeros(embedding_dim if representation == "random" else 0))
+        codes = th.zeros(embedding_dim if representation == "random" else 0)
+        self.register_buffer("behaviour_codes", codes, persistent=codes.numel() > 0)  # saved where used
         #: The states of the live actor's state-action pairs (``spr``): its latest snapshot's
-        self.register_buffer("pair_states", th.zeros(n_state_action_pairs, state_dim(observation_space)))
+        states = th.zeros(n_state_action_pairs, state_dim(observation_space))
+        self.register_buffer("pair_states", states, persistent=states.numel() > 0)
         #: The live actor's chi carries a gradient into the encoder in the critic's loss (else only explicit chi do,
         #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
         self.live_chi_gradient = True
@@ -135,7 +138,10 @@ class PeVFAContinuousCritic(BaseModel):
         self.generation += 1
 
     def _cached(self, name: str, key: tuple, compute: Any) -> th.Tensor:
-        """``compute()``, again only when ``key`` changed since the last call under ``name``."""
+        """``compute()``, again only when ``key`` changed since the last call under ``name`` (never kept from inside
+        ``th.inference_mode``: its tensors cannot be used by a later update)."""
+        if th.is_inference_mode_enabled():
+            return compute()
         if name not in self._cache or self._cache[name][0] != key:
             self._cache[name] = (key, compute())
         return self._cache[name][1]
@@ -143,7 +149,7 @@ class PeVFAContinuousCritic(BaseModel):
     def _actor_key(self) -> tuple:
         """What the live actor's weights are now: the generation, the storage and version of each tensor."""
         actor = self.actor_holder[0]
-        layers = self._cached("layers", (id(actor.actor),), lambda: self.layout.linear_layers(actor))
+        layers = self._cached("layers", (actor.actor,), lambda: self.layout.linear_layers(actor))
         return (self.generation, *((t.data_ptr(), t._version) for layer in layers for t in (layer.weight, layer.bias)))
 
     def _actor_params(self) -> th.Tensor:
@@ -176,7 +182,9 @@ class PeVFAContinuousCritic(BaseModel):
         if grad and th.is_grad_enabled():
             return self.representation(record)
         tensors = (self.behaviour_codes, self.pair_states, *self.representation.parameters())
-        key = (*self._actor_key(), *((t.data_ptr(), t._version) for t in tensors))
+        # the target critic's encoder moves by SB3's Polyak update, which bumps no counter: after the optimizers' steps
+        # of the same gradient step (their hooks), before its next call
+        key = (*self._actor_key(), self.representation.training, *((t.data_ptr(), t._version) for t in tensors))
         with th.no_grad():
             return self._cached("chi", key, lambda: self.representation(record))
 
@@ -268,13 +276,31 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
     def _build(self, lr_schedule: Schedule) -> None:
         super()._build(lr_schedule)  # type: ignore[misc]
         optimizer = self.critic.optimizer  # type: ignore[attr-defined]
-        fusable = type(optimizer) in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & set(self.optimizer_kwargs)
+        chosen = {"fused", "foreach", "differentiable"} & set(self.optimizer_kwargs)
+        fusable = type(optimizer) in (th.optim.Adam, th.optim.AdamW) and not chosen
         if self.fused_critic_optimizer and self.representation_name != "none" and fusable:
             params = [param for group in optimizer.param_groups for param in group["params"]]
-            self.critic.optimizer = type(optimizer)(params, **{**optimizer.defaults, "foreach": None, "fused": True})  # type: ignore[attr-defined]
+            # its settings as its constructor takes them (AdamW's defaults hold decoupled_weight_decay, not an argument)
+            accepted = inspect.signature(type(optimizer)).parameters
+            settings = {name: value for name, value in optimizer.defaults.items() if name in accepted}
+            self.critic.optimizer = type(optimizer)(params, **{**settings, "foreach": None, "fused": True})  # type: ignore[attr-defined]
+        self._register_touch_hooks()
+
+    def _register_touch_hooks(self) -> None:
+        """Each step of the actor's or the critic's optimizer marks both critics' caches as stale (once per optimizer:
+        a copied or unpickled optimizer comes without its hooks)."""
         for model in (self.actor, self.critic):  # type: ignore[attr-defined]
+            optimizer = getattr(model, "optimizer", None)
+            if optimizer is None or getattr(optimizer, "_pevfa_touch_hooks", False):
+                continue
             for critic in (self.critic, self.critic_target):  # type: ignore[attr-defined]
-                model.optimizer.register_step_post_hook(critic.touch)
+                optimizer.register_step_post_hook(critic.touch)
+            optimizer._pevfa_touch_hooks = True
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        super().__setstate__(state)  # type: ignore[misc]
+        if "critic" in self.__dict__.get("_modules", {}):
+            self._register_touch_hooks()
 
     def _mode_roots(self) -> tuple[nn.Module, ...]:
         return (self.actor, self.critic)  # type: ignore[attr-defined]

@@ -33,9 +33,10 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
         each of ``history_batch_policies`` snapshots drawn uniformly
     :param history_batch_policies: Snapshots per update
     :param history_learning_starts: Env steps before the snapshots' updates start
-    :param live_encoder_gradient: The critic's loss on the live actor trains the encoder too (end to end); False
-        (default): the snapshots' updates train it, and chi of the live actor is computed once per gradient step
-        without gradient (the critic still learns Q(s, a, chi) of the live actor)
+    :param live_encoder_gradient: The critic's loss on the live actor trains the encoder too (default: end to end,
+        as the paper's E2E); False: only the snapshots' updates train it and chi of the live actor is computed once
+        per move of the actor or encoder without gradient (cheaper; unstable at a high learning rate: the encoder
+        then grew chi without bound in SB3's infinite-horizon test, lr 0.01)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
