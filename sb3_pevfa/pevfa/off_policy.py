@@ -17,6 +17,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_pevfa.common.rng_states import RngStatesInFile
@@ -74,6 +75,8 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
     history: PolicyHistory
     #: The critic loss of SB3's update is this times the sum of the critics' MSE (SAC: 0.5, TD3: 1)
     critic_loss_scale: float = 1.0
+    #: The names of SB3's lists of the critic's and its target's BatchNorm statistics
+    critic_norm_stats: tuple[str, str] = ("critic_batch_norm_stats", "critic_batch_norm_stats_target")
     live_encoder_gradient: bool
     snapshot_freq: int
     history_max_policies: int
@@ -191,6 +194,8 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         n_updates, self._history_credit = divmod(self._history_credit, self.history_train_freq)
         losses = [self._train_on_snapshots() for _ in range(n_updates)]
         if losses:
+            live, target = (getattr(self, name) for name in self.critic_norm_stats)
+            polyak_update(live, target, 1.0)  # the targets' BatchNorm statistics, as SB3 copies them at each update
             self.logger.record("pevfa/history_value_loss", float(np.mean(losses)))
         self.logger.record("pevfa/history_updates", len(losses))
         self.logger.record("pevfa/n_policies", self.history.n_policies)
@@ -216,7 +221,10 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         discounts = getattr(data, "discounts", None)  # SB3 >= 2.7's n-step returns
         discounts = self.gamma if discounts is None else discounts
         with th.no_grad():
-            features = self.actor.extract_features(data.next_observations, self.actor.features_extractor)
+            extractor = self.actor.features_extractor
+            extractor.train(False)  # the live actor's features, without moving its statistics (BatchNorm, dropout)
+            features = self.actor.extract_features(data.next_observations, extractor)
+            extractor.train(self.actor.training)
             actions, log_prob = self._snapshot_actions(records, features.reshape(n_policies, per_policy, -1))
             next_q = th.cat(target(data.next_observations, actions, target.representation(records), pairing), dim=1)
             next_q, _ = th.min(next_q, dim=1, keepdim=True)

@@ -42,6 +42,7 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SACPeVFAPolicy
     critic_loss_scale = 0.5
+    critic_norm_stats = ("batch_norm_stats", "batch_norm_stats_target")
 
     def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
         """Each snapshot's squashed Gaussian at its inputs, sampled as SB3's actor samples (with its log-probability)."""
