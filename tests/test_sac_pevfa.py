@@ -82,6 +82,14 @@ def test_the_critic_head_adds_chi_as_a_bias_equal_to_the_concatenation():
     expected = q_net.head(q_net.stream(inputs), chi[pairing])  # the head as the on-policy critic runs it
     th.testing.assert_close(q_net(inputs, chi, pairing), expected, atol=1e-6, rtol=0)
     th.testing.assert_close(q_net(inputs, chi[:1]), q_net.head(q_net.stream(inputs), chi[:1]), atol=1e-6, rtol=0)
+    for rows in (pairing, None):  # and the same gradients: the head's weights, its inputs and chi
+        gradients = []
+        for forward in (q_net, lambda x, c, r: q_net.head(q_net.stream(x), c if r is None else c[r])):
+            x, c = inputs.clone().requires_grad_(), (chi if rows is not None else chi[:1]).clone().requires_grad_()
+            output = forward(x, c, rows)
+            gradients.append(th.autograd.grad((output**2).sum(), [x, c, *q_net.head.parameters()]))
+        for ours, concatenated in zip(*gradients):
+            th.testing.assert_close(ours, concatenated, atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.parametrize("fused_actor", [False, True])
@@ -98,6 +106,26 @@ def test_the_live_chi_without_gradient_follows_every_step_of_the_actor(fused_act
         "actions": np.zeros((1, 0)), "codes": critic.behaviour_codes[None].numpy()}))  # fmt: skip
     th.testing.assert_close(critic.live_embedding(grad=False), fresh.detach(), atol=0, rtol=0)
     assert not th.equal(fresh, cached)
+
+
+def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())  # the critic's Adam is fused: no version counters move
+    model.learn(120)
+    critic, observations = model.policy.critic, th.randn(8, 3)
+    params, chi = critic.actor_record().params, critic.live_embedding(grad=False)
+    critic.optimizer.zero_grad()
+    sum(q.sum() for q in critic(observations, th.zeros(8, 1))).backward()
+    critic.optimizer.step()  # the encoder moved, the actor did not
+    assert critic.actor_record().params is params
+    moved = critic.live_embedding(grad=False)
+    th.testing.assert_close(moved, critic.representation(critic.actor_record()).detach(), atol=0, rtol=0)
+    assert not th.equal(moved, chi)
+    actor = model.policy.actor
+    actor.optimizer.zero_grad()
+    actor(observations).sum().backward()
+    actor.optimizer.step()
+    assert not th.equal(critic.actor_record().params, params)
+    th.testing.assert_close(critic.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
 
 
 def test_the_critic_optimizer_is_fused_where_it_reads_chi():

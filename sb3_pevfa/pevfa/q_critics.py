@@ -35,6 +35,39 @@ from sb3_pevfa.pevfa.representations import make_representation
 OFF_POLICY_REPRESENTATIONS = ("opr", "spr", "fingerprint", "random", "none")
 
 
+class SplitLinear(th.autograd.Function):
+    """A linear layer on ``[latent, code[pairing]]`` with its weight's latent and code columns applied apart: the code
+    columns once per distinct code (a bias per code). The gradient of the weight is assembled whole, where autograd
+    through two slices of it would zero-fill and add a full-size copy per slice."""
+
+    @staticmethod
+    def forward(ctx: Any, latent: th.Tensor, code: th.Tensor, weight: th.Tensor, bias: th.Tensor,
+                pairing: th.Tensor | None) -> th.Tensor:  # fmt: skip
+        """:param latent: ``(batch, width)``; :param code: ``(1 or P, weight columns - width)``; :param pairing: the
+        row of ``code`` of each input (None: one code for all)"""
+        width = latent.shape[1]
+        per_code = F.linear(code, weight[:, width:], bias)
+        ctx.save_for_backward(latent, code, weight, pairing)
+        return F.linear(latent, weight[:, :width]) + (per_code if pairing is None else per_code[pairing])
+
+    @staticmethod
+    def backward(ctx: Any, grad: th.Tensor) -> tuple[th.Tensor | None, ...]:
+        latent, code, weight, pairing = ctx.saved_tensors
+        width = latent.shape[1]
+        if pairing is None:
+            per_code = grad.sum(0, keepdim=True)
+        else:
+            per_code = grad.new_zeros(code.shape[0], grad.shape[1]).index_add_(0, pairing, grad)
+        needs = ctx.needs_input_grad
+        return (
+            grad @ weight[:, :width] if needs[0] else None,
+            per_code @ weight[:, width:] if needs[1] else None,
+            th.cat([grad.t() @ latent, per_code.t() @ code], dim=1) if needs[2] else None,
+            per_code.sum(0) if needs[3] else None,
+            None,
+        )
+
+
 class QStream(nn.Module):
     """One critic: the state-action stream and the PeVFA head."""
 
@@ -52,10 +85,7 @@ class QStream(nn.Module):
         # distinct code, a bias per code (the same function, without a batch of copies of the codes)
         first = head.hidden[0]
         code = head.embedding_net(head.chi_norm(chi))
-        width = latent.shape[1]
-        bias = F.linear(code, first.weight[:, width:], first.bias)
-        bias = bias if pairing is None else bias[pairing]
-        return head.output(head.hidden[1:](F.linear(latent, first.weight[:, :width]) + bias))
+        return head.output(head.hidden[1:](SplitLinear.apply(latent, code, first.weight, first.bias, pairing)))
 
 
 class PeVFAContinuousCritic(BaseModel):
@@ -129,12 +159,17 @@ class PeVFAContinuousCritic(BaseModel):
         #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
         self.live_chi_gradient = True
         self._cache: dict[str, tuple[tuple, th.Tensor]] = {}
-        #: Bumped after each step of the actor's or the critic's optimizer (a fused optimizer moves the weights without
-        #: their version counters)
+        #: Bumped after each step of the actor's and of the critic's optimizer (a fused optimizer moves the weights
+        #: without their version counters): the actor's flat copy is taken again only when the actor moved
+        self.actor_generation = 0
         self.generation = 0
 
+    def touch_actor(self, *_: Any) -> None:
+        """Mark the actor's weights as moved (its optimizer's step hook)."""
+        self.actor_generation += 1
+
     def touch(self, *_: Any) -> None:
-        """Mark the actor's or the encoder's weights as moved (an optimizer's step hook)."""
+        """Mark the encoder's weights as moved (the critic's optimizer's step hook)."""
         self.generation += 1
 
     def _cached(self, name: str, key: tuple, compute: Any) -> th.Tensor:
@@ -150,7 +185,7 @@ class PeVFAContinuousCritic(BaseModel):
         """What the live actor's weights are now: the generation, the storage and version of each tensor."""
         actor = self.actor_holder[0]
         layers = self._cached("layers", (actor.actor,), lambda: self.layout.linear_layers(actor))
-        return (self.generation, *((t.data_ptr(), t._version) for layer in layers for t in (layer.weight, layer.bias)))
+        return (self.actor_generation, *((t.data_ptr(), t._version) for layer in layers for t in (layer.weight, layer.bias)))
 
     def _actor_params(self) -> th.Tensor:
         """The live actor's flat parameters ``(1, n_params)``, copied again only when they moved."""
@@ -184,7 +219,8 @@ class PeVFAContinuousCritic(BaseModel):
         tensors = (self.behaviour_codes, self.pair_states, *self.representation.parameters())
         # the target critic's encoder moves by SB3's Polyak update, which bumps no counter: after the optimizers' steps
         # of the same gradient step (their hooks), before its next call
-        key = (*self._actor_key(), self.representation.training, *((t.data_ptr(), t._version) for t in tensors))
+        key = (*self._actor_key(), self.generation, self.representation.training)
+        key += tuple((t.data_ptr(), t._version) for t in tensors)
         with th.no_grad():
             return self._cached("chi", key, lambda: self.representation(record))
 
@@ -287,14 +323,14 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         self._register_touch_hooks()
 
     def _register_touch_hooks(self) -> None:
-        """Each step of the actor's or the critic's optimizer marks both critics' caches as stale (once per optimizer:
-        a copied or unpickled optimizer comes without its hooks)."""
-        for model in (self.actor, self.critic):  # type: ignore[attr-defined]
+        """Each step of the actor's or the critic's optimizer marks both critics' caches of it as stale (once per
+        optimizer: a copied or unpickled optimizer comes without its hooks)."""
+        for model, hook in ((self.actor, "touch_actor"), (self.critic, "touch")):  # type: ignore[attr-defined]
             optimizer = getattr(model, "optimizer", None)
             if optimizer is None or getattr(optimizer, "_pevfa_touch_hooks", False):
                 continue
             for critic in (self.critic, self.critic_target):  # type: ignore[attr-defined]
-                optimizer.register_step_post_hook(critic.touch)
+                optimizer.register_step_post_hook(getattr(critic, hook))
             optimizer._pevfa_touch_hooks = True
 
     def __setstate__(self, state: dict[str, Any]) -> None:
