@@ -14,6 +14,8 @@ SB3's in the same repeat; its median and range over the repeats are reported.
     # rl-zoo3's Hopper SAC entry (SB3's SAC defaults): SAC vs SACPeVFA's shipped entry, 1000 random steps first (the
     # entry's 10000 would be most of a short run) for both
     python benchmarks/speed_zoo.py --setting sac-hopper --steps 10000 --repeats 3 --overrides '{"learning_starts": 1000}'
+    # rl-zoo3's Hopper TD3 entry (400x300, Gaussian action noise 0.1): TD3 vs TD3PeVFA's shipped entry, the same way
+    python benchmarks/speed_zoo.py --setting td3-hopper --steps 10000 --repeats 3 --overrides '{"learning_starts": 1000}'
 """
 
 import argparse
@@ -26,13 +28,14 @@ import numpy as np
 import rl_zoo3
 import torch as th
 import yaml
-from stable_baselines3 import A2C, PPO, SAC
+from stable_baselines3 import A2C, PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-from sb3_pevfa import A2CPeVFA, PPOPeVFA, SACPeVFA
+from sb3_pevfa import A2CPeVFA, PPOPeVFA, SACPeVFA, TD3PeVFA
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 ZOO = pathlib.Path(rl_zoo3.__file__).parent / "hyperparams"
@@ -44,6 +47,7 @@ SETTINGS = {
     "a2c-cartpole": ("CartPole-v1", A2C, ZOO / "a2c.yml", A2CPeVFA, OURS / "a2c_pevfa.yml"),
     "ppo-hopper-tuned": ("Hopper-v5", PPO, TUNED, PPOPeVFA, OURS / "ppo_pevfa.yml"),
     "sac-hopper": ("Hopper-v5", SAC, ZOO / "sac.yml", SACPeVFA, OURS / "sac_pevfa.yml"),
+    "td3-hopper": ("Hopper-v5", TD3, ZOO / "td3.yml", TD3PeVFA, OURS / "td3_pevfa.yml"),
 }
 
 
@@ -62,6 +66,11 @@ def make_model(algorithm: type, entry: dict[str, Any], env_id: str, seed: int):
     entry = dict(entry)
     n_envs, normalize, policy = entry.pop("n_envs", 1), entry.pop("normalize", False), entry.pop("policy")
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed)
+    noise_type, noise_std = entry.pop("noise_type", None), entry.pop("noise_std", 0.0)
+    if noise_type is not None:  # rl-zoo3's action noise ("normal" / "ornstein-uhlenbeck", std per dimension)
+        sigma = noise_std * np.ones(env.action_space.shape[0])
+        noise = NormalActionNoise if noise_type == "normal" else OrnsteinUhlenbeckActionNoise
+        entry["action_noise"] = noise(mean=np.zeros_like(sigma), sigma=sigma)
     if normalize:
         kwargs = normalize if isinstance(normalize, dict) else {}
         env = VecNormalize(env, **({"gamma": entry["gamma"]} if "gamma" in entry else {}), **kwargs)
