@@ -588,3 +588,13 @@ def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_
     assert result["curve"]["steps"] == [500, 1000, 1500, 2000] and state["n_policies"] == 1  # the first update's
     arguments = result["arguments"]
     assert arguments["snapshot_freq"] == "1000" and arguments["learning_starts"] == "900"  # the mixin's and SAC's
+
+
+def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
+    small = dict(learning_starts=200, batch_size=32, snapshot_freq=300, policy_kwargs=dict(net_arch=[32, 32]))
+    monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
+    tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 2)
+    series = training.train(tiny, TASK, "opr+local-generalization", 0)["local_generalization"]
+    assert series["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0]  # a window per snapshot (300 gradient steps from the 201st step)
+    assert series["timesteps"][-1] == 1500.0 and min(series["n_states"]) > 0
+    assert all(min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after"))

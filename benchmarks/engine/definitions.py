@@ -116,7 +116,14 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
     # the zoo variants (learning.py's), trained through rl-zoo3's entry point on one hyperparameter file (the conf)
     "zoo": dict(ZOO_VARIANTS),
     # SAC and SACPeVFA in rl-zoo3's SAC settings (OFF_POLICY): OPR, and a random code per snapshot as its control
-    "sac": {"sac": None, "opr": {}, "random": dict(representation="random")},
+    "sac": {
+        "sac": None,
+        "opr": {},
+        "random": dict(representation="random"),
+        # OPR with the local-generalization diagnostic adapted to Q: a conventional twin critic beside it (SB3's, on
+        # the same replay with SB3's targets); the diagnostic's critic counts in its CPU time
+        "opr+local-generalization": {},
+    },
     "sb3": {
         "ppo": None,
         "opr": {},
@@ -138,8 +145,9 @@ STOCHASTIC_EVALUATION = {"authors"}
 #: Protocols whose envs are not Gymnasium's as made (task, seed) -> VecEnv
 ENV_MAKERS = {"authors": make_authors_env}
 
-#: Variants that run a diagnostic beside their training: variant -> the callback's constructor arguments
-LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128))}
+#: Variants that run a diagnostic beside their training: variant -> the callback's constructor arguments (the
+#: on-policy LocalGeneralizationCallback, or QLocalGeneralizationCallback in the protocols of OFF_POLICY)
+LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128)), "opr+local-generalization": {}}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,6 +235,11 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-authors-random": Campaign("authors", TABLE1_TASKS, ("random",), tuple(range(5)), 2_000_000),
     # SAC against SACPeVFA (OPR, and a random code per snapshot) in rl-zoo3's SAC settings, after the authors' grids
     "sac-pevfa": Campaign("sac", ("Hopper-v5", "HalfCheetah-v5"), ("sac", "opr", "random"), tuple(range(5)), 200_000),
+    # the local-generalization diagnostic adapted to Q (the critic's error on each next snapshot's returns), for the
+    # report of sac-pevfa where SACPeVFA misses its target
+    "sac-local-generalization": Campaign(
+        "sac", ("Hopper-v5", "HalfCheetah-v5"), ("opr+local-generalization",), tuple(range(3)), 200_000
+    ),
     # the pilot of table1-authors: one task and seed, to check that its PPO lands near the paper's before the grid runs
     "table1-authors-pilot": Campaign("authors", ("Hopper-v5",), ("ppo", "opr-e2e"), (0,), 2_000_000),
     # the local-generalization diagnostic (paper Fig. 3b / 8) where grid (a)'s direction differs from the paper's

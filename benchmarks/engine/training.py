@@ -35,6 +35,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
+from sb3_pevfa.diagnostics.q_local_generalization import QLocalGeneralizationCallback
 
 from . import zoo
 from .definitions import ENV_MAKERS, LOCAL_GENERALIZATION, OFF_POLICY, ROOT, STOCHASTIC_EVALUATION, VARIANTS, Campaign
@@ -195,7 +196,8 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     logged = MemoryOutput()
     if variant in LOCAL_GENERALIZATION:
         model.set_logger(Logger(folder=None, output_formats=[logged]))
-        callbacks.append(LocalGeneralizationCallback(**LOCAL_GENERALIZATION[variant]))
+        diagnostic = QLocalGeneralizationCallback if campaign.protocol in OFF_POLICY else LocalGeneralizationCallback
+        callbacks.append(diagnostic(**LOCAL_GENERALIZATION[variant]))
     model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
     cpu, wall = callback.training_time()
     curve = callback.curve

@@ -10,10 +10,12 @@ require_extra("diagnostics", "sb3_pevfa.diagnostics", modules=("scipy",))  # the
 from sb3_pevfa.diagnostics.embedding_maps import plot_embedding_maps, policy_embeddings
 from sb3_pevfa.diagnostics.global_generalization import plot_global_generalization, run_global_generalization
 from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback, plot_local_generalization
+from sb3_pevfa.diagnostics.q_local_generalization import QLocalGeneralizationCallback
 from sb3_pevfa.diagnostics.zero_shot import predict_policy_values
 
 __all__ = [
     "LocalGeneralizationCallback",
+    "QLocalGeneralizationCallback",
     "plot_embedding_maps",
     "plot_global_generalization",
     "plot_local_generalization",

@@ -205,6 +205,11 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         log-probabilities ``(P * K,)`` (None for deterministic actors)."""
         raise NotImplementedError
 
+    def _live_next_actions(self, observations: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+        """The actions of SB3's target for next observations (SAC: the live actor's, with their log-probabilities;
+        TD3: the target actor's, smoothed), as a conventional critic beside the run trains on them."""
+        raise NotImplementedError
+
     def _entropy_term(self) -> th.Tensor | None:
         """alpha of the target's entropy term (None: no entropy term)."""
         return None

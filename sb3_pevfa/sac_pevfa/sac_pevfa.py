@@ -53,6 +53,10 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
         distribution = SquashedDiagGaussianDistribution(mean.shape[-1])
         return distribution.log_prob_from_params(mean, log_std)
 
+    def _live_next_actions(self, observations: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """SAC's target action: sampled from the live actor, with its log-probability."""
+        return self.actor.action_log_prob(observations)
+
     def _entropy_term(self) -> th.Tensor:
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             return th.exp(self.log_ent_coef.detach())

@@ -28,6 +28,13 @@ class TD3PeVFA(OffPolicyPeVFA, TD3):
     def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, None]:
         """Each snapshot's deterministic action at its inputs with TD3's clipped target noise."""
         _, outputs = self.policy.critic.layout.evaluate(records.params, features)
-        actions = outputs.reshape(-1, outputs.shape[-1])
+        return self._smoothed(outputs.reshape(-1, outputs.shape[-1])), None
+
+    def _live_next_actions(self, observations: th.Tensor) -> tuple[th.Tensor, None]:
+        """TD3's target action: the target actor's, smoothed."""
+        return self._smoothed(self.actor_target(observations)), None
+
+    def _smoothed(self, actions: th.Tensor) -> th.Tensor:
+        """``clip(actions + clip(noise), -1, 1)``, TD3's target policy smoothing."""
         noise = th.randn_like(actions).mul_(self.target_policy_noise).clamp_(-self.target_noise_clip, self.target_noise_clip)
-        return (actions + noise).clamp(-1, 1), None
+        return (actions + noise).clamp(-1, 1)
