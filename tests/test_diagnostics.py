@@ -166,3 +166,35 @@ def test_zero_shot_values(tmp_path, representation):
             predict_policy_values(model, latest["params"], obs)
     with pytest.raises(ValueError, match="differs"):
         predict_policy_values(model, PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])), obs)
+
+
+def test_embedding_maps_and_episode_returns_of_sacpevfa_snapshots(tmp_path):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from sb3_pevfa import SACPeVFA
+
+    class Episodes(BaseCallback):  # (env step, return) of every episode that ends
+        def _on_step(self) -> bool:
+            ended = [info["episode"]["r"] for info in self.locals["infos"] if "episode" in info]
+            self.ended = [*getattr(self, "ended", []), *((self.num_timesteps, r) for r in ended)]
+            return True
+
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", learning_starts=100, batch_size=32, snapshot_freq=150,
+                     policy_kwargs=dict(net_arch=[32, 32]), seed=0)  # fmt: skip
+    episodes = Episodes()
+    model.learn(1300, callback=episodes)
+    ids, embeddings = policy_embeddings(model)
+    steps = [model.history.record_info(int(i))["num_timesteps"] for i in ids]
+    for k, policy_id in enumerate(ids[:-1]):  # each snapshot: the episodes that ended until the next one
+        returns = [r for step, r in episodes.ended if steps[k] < step <= steps[k + 1]]
+        info = model.history.record_info(int(policy_id))
+        assert info.get("episode_return") == (pytest.approx(np.mean(returns)) if returns else None)
+    assert sum("episode_return" in model.history.record_info(int(i)) for i in ids) >= 4
+    critic = model.policy.critic
+    critic.train(False)
+    with th.no_grad():
+        expected = critic.representation(PolicyRecord.from_numpy(model.history.records(ids))).numpy()
+    np.testing.assert_allclose(embeddings, expected, atol=1e-6)
+    assert plot_embedding_maps(model, tmp_path / "maps.png").exists()
+    with pytest.raises(TypeError, match="Q\\(s, a, chi\\)"):
+        predict_policy_values(model, model.policy, np.zeros((2, 3), np.float32))

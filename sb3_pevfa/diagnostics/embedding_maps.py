@@ -6,14 +6,18 @@ import numpy as np
 import torch as th
 
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
+from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 from sb3_pevfa.pevfa.records import PolicyRecord
 
 
 def policy_embeddings(model, batch_size: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """(policy ids, embeddings ``(P, embedding_dim)``) of every policy in ``model.history``, by the current encoder
-    in evaluation mode."""
+    in evaluation mode (SACPeVFA / TD3PeVFA: the critic's)."""
     policy, history = model.policy, model.history
-    if policy.representation.embedding_dim == 0:
+    off_policy = isinstance(model, OffPolicyPeVFA)
+    representation = policy.critic.representation if off_policy else policy.representation
+    embed = representation if off_policy else policy.embed
+    if representation.embedding_dim == 0:
         raise ValueError("representation='none' has no embedding to map")
     ids = np.array(history.policy_ids)
     if len(ids) < 3:
@@ -24,7 +28,7 @@ def policy_embeddings(model, batch_size: int = 256) -> tuple[np.ndarray, np.ndar
     with th.no_grad():
         for start in range(0, len(ids), batch_size):
             data = PolicyRecord.from_numpy(history.records(ids[start : start + batch_size]), model.device)
-            chunks.append(policy.embed(data).cpu().numpy())
+            chunks.append(embed(data).cpu().numpy())
     policy.set_training_mode(training)
     return ids, np.concatenate(chunks)
 

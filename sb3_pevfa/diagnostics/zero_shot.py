@@ -9,6 +9,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import obs_as_tensor
 
+from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, batch_size, record_policy, rows, state_dim
 
 PolicyLike = ActorCriticPolicy | BaseAlgorithm | str | pathlib.Path | dict | np.ndarray
@@ -59,6 +60,9 @@ def predict_policy_values(model, policy: PolicyLike, observations: np.ndarray | 
         representations, a flat parameter vector
     :return: Values, shape ``(batch,)``
     """
+    if isinstance(model, OffPolicyPeVFA):
+        raise TypeError(f"predict_policy_values reads V(s, chi) of a PPOPeVFA or A2CPeVFA model; {type(model).__name__}'s "
+                        "critic is Q(s, a, chi): call model.policy.critic(observations, actions, chi)")  # fmt: skip
     record = _record(model, policy, observations)
     if record["params"].ndim == 1:
         record = {key: value[None] for key, value in record.items()}

@@ -115,6 +115,7 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
             raise ValueError(f"live_encoder_gradient must be a bool, got {live_encoder_gradient!r}")
         self.live_encoder_gradient = live_encoder_gradient
         self._history_credit = 0
+        self._snapshot_episodes = 0  # SB3's episode count at the latest snapshot
         if _init_setup_model:
             self._setup_model()
 
@@ -156,7 +157,9 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
 
     def record_snapshot(self) -> int:
         """Record the live actor (its flat parameters; its actions at replay states for ``spr``; a random code) and make
-        its states and code the critics'; its id. The first one also sets the fingerprint's probe states."""
+        its states and code the critics'; its id. The first one also sets the fingerprint's probe states. The previous
+        snapshot's ``episode_return`` (history's ``record_info``) becomes the mean return of the episodes that ended
+        since it was recorded (while the buffer of SB3's episode infos still holds them all)."""
         critic, target = self.policy.critic, self.policy.critic_target
         rows = critic.representation.rollout_rows(self.replay_buffer.size())  # type: ignore[union-attr]
         if rows is not None:  # the fingerprint's probes, once: evenly spaced replay states
@@ -176,6 +179,12 @@ class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
         }
         if states is not None:
             record.update(states=states.cpu().numpy(), actions=critic.actor_actions(states).cpu().numpy())
+        previous = self.history.latest_policy_id
+        ended = self._episode_num - self._snapshot_episodes  # episodes that ended since the previous snapshot
+        if previous is not None and 0 < ended <= len(self.ep_info_buffer):
+            returns = [info["r"] for info in list(self.ep_info_buffer)[-ended:]]
+            self.history.update_record_info(previous, episode_return=float(np.mean(returns)))
+        self._snapshot_episodes = self._episode_num
         policy_id = self.history.add_record(record, n_updates=self._n_updates, num_timesteps=self.num_timesteps)
         with th.no_grad():
             for module in (critic, target):
