@@ -407,3 +407,23 @@ def test_critic_only_steps_leave_a_shared_cnn_extractor_and_the_actor_alone(repr
     assert not th.equal(critic(), critic_before)  # the critic did train
     assert th.equal(actor_outputs(), before)
     assert all(th.equal(a, b) for a, b in zip(model.policy.features_extractor.parameters(), extractor))
+
+
+@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "sac_pevfa", "td3_pevfa"])
+def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
+    import io
+
+    from sb3_pevfa import SACPeVFA, TD3PeVFA
+
+    cls, env_id = {"ppo_pevfa": (PPOPeVFA, "CartPole-v1"), "sac_pevfa": (SACPeVFA, "Pendulum-v1"),
+                   "td3_pevfa": (TD3PeVFA, "Pendulum-v1")}[algorithm]  # fmt: skip
+    model = cls("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[16, 16]), representation="random", embedding_dim=8)
+    model.save(tmp_path / "model.zip")
+    loaded = cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16]))  # as SB3's PPO / TD3 load it
+    assert loaded.policy_kwargs == model.policy_kwargs
+    stream = io.BytesIO((tmp_path / "model.zip").read_bytes())
+    assert cls.load(stream, policy_kwargs=dict(net_arch=[16, 16])).policy_kwargs == model.policy_kwargs
+    with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # SB3's check of a real difference
+        cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16], embedding_dim=4))
+    with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):
+        cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[8]))

@@ -34,9 +34,15 @@ from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch.nn import functional as F
 
-from sb3_pevfa.common.rng_states import RngStatesInFile
+from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa import episodes, fast_path
-from sb3_pevfa.pevfa.arguments import PEVFA_ARGUMENTS, check_observation_space, validate_arguments, with_saved_critic
+from sb3_pevfa.pevfa.arguments import (
+    ADDED_POLICY_KWARGS,
+    PEVFA_ARGUMENTS,
+    check_observation_space,
+    validate_arguments,
+    with_saved_critic,
+)
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
 from sb3_pevfa.pevfa.denormals import flush_denormals
@@ -53,9 +59,10 @@ SelfPeVFAAlgorithm = TypeVar("SelfPeVFAAlgorithm", bound="PeVFAAlgorithm")
 HISTORY_MEMORY_WARNING_BYTES = 4 * 2**30
 
 
-class PeVFAAlgorithm(RngStatesInFile, OnPolicyAlgorithm):
+class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
     """The PeVFA part of an on-policy algorithm; subclasses list it before their SB3 base (see the module)."""
 
+    added_policy_kwargs = ADDED_POLICY_KWARGS
     policy: PeVFAActorCriticPolicy
     history: PolicyHistory
     recorder: PolicyRecorder
@@ -558,9 +565,9 @@ class PeVFAAlgorithm(RngStatesInFile, OnPolicyAlgorithm):
     def load(  # type: ignore[override]
         cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any
     ):
-        """SB3's ``load`` (the RNG states as :meth:`RngStatesInFile.load` says). A checkpoint of SB3's
-        ``CheckpointCallback`` (``<prefix>_<steps>_steps.zip``) comes with the history saved beside it, if there is
-        one.
+        """SB3's ``load`` (the RNG states and a ``policy_kwargs`` given as :meth:`ModelFile.load` says). A checkpoint
+        of SB3's ``CheckpointCallback`` (``<prefix>_<steps>_steps.zip``) comes with the history saved beside it, if
+        there is one.
 
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with :meth:`load_history` and seeded environments) continues bit for bit as the saved run would have

@@ -20,7 +20,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from sb3_pevfa.common.rng_states import RngStatesInFile
+from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
 
@@ -68,10 +68,11 @@ def snapshots_path(replay_buffer_path: str | pathlib.Path) -> pathlib.Path:
     return path.with_suffix(".snapshots.npz")
 
 
-class OffPolicyPeVFA(RngStatesInFile, OffPolicyAlgorithm):
+class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
     """The snapshot history and its critic updates; subclasses list it before their SB3 base and implement
     :meth:`_snapshot_actions` (and :meth:`_entropy_term` where the target has one)."""
 
+    added_policy_kwargs = POLICY_ARGUMENTS
     history: PolicyHistory
     #: The critic loss of SB3's update is this times the sum of the critics' MSE (SAC: 0.5, TD3: 1)
     critic_loss_scale: float = 1.0

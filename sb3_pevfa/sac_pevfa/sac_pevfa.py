@@ -41,6 +41,7 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SACPeVFAPolicy
+    added_policy_kwargs = (*OffPolicyPeVFA.added_policy_kwargs, "use_sde")  # SB3's SAC adds use_sde too
     critic_loss_scale = 0.5
     critic_norm_stats = ("batch_norm_stats", "batch_norm_stats_target")
 
