@@ -196,5 +196,13 @@ def test_embedding_maps_and_episode_returns_of_sacpevfa_snapshots(tmp_path):
         expected = critic.representation(PolicyRecord.from_numpy(model.history.records(ids))).numpy()
     np.testing.assert_allclose(embeddings, expected, atol=1e-6)
     assert plot_embedding_maps(model, tmp_path / "maps.png").exists()
+    episodes.ended, last = [], model.history.latest_policy_id
+    model.learn(700, callback=episodes)  # SB3 counts the episodes anew: so do the snapshots
+    new = [i for i in model.history.policy_ids if i > last]
+    steps = [model.history.record_info(i)["num_timesteps"] for i in new]
+    returns = [r for step, r in episodes.ended if steps[0] < step <= steps[1]]
+    assert model.history.record_info(new[0])["episode_return"] == pytest.approx(np.mean(returns))
+    before = [r for step, r in episodes.ended if step <= steps[0]]  # the last snapshot acted until the first new one
+    assert len(before) == 1 and model.history.record_info(last)["episode_return"] == pytest.approx(before[0])
     with pytest.raises(TypeError, match="Q\\(s, a, chi\\)"):
         predict_policy_values(model, model.policy, np.zeros((2, 3), np.float32))

@@ -82,10 +82,11 @@ def test_the_critic_head_adds_chi_as_a_bias_equal_to_the_concatenation():
     expected = q_net.head(q_net.stream(inputs), chi[pairing])  # the head as the on-policy critic runs it
     th.testing.assert_close(q_net(inputs, chi, pairing), expected, atol=1e-6, rtol=0)
     th.testing.assert_close(q_net(inputs, chi[:1]), q_net.head(q_net.stream(inputs), chi[:1]), atol=1e-6, rtol=0)
-    for rows in (pairing, None):  # and the same gradients: the head's weights, its inputs and chi
+    codes = {"paired": chi, "one": chi[:1], "per input": th.randn(12, 64)}
+    for name, rows in (("paired", pairing), ("one", None), ("per input", None)):  # the same gradients: head, inputs, chi
         gradients = []
         for forward in (q_net, lambda x, c, r: q_net.head(q_net.stream(x), c if r is None else c[r])):
-            x, c = inputs.clone().requires_grad_(), (chi if rows is not None else chi[:1]).clone().requires_grad_()
+            x, c = inputs.clone().requires_grad_(), codes[name].clone().requires_grad_()
             output = forward(x, c, rows)
             gradients.append(th.autograd.grad((output**2).sum(), [x, c, *q_net.head.parameters()]))
         for ours, concatenated in zip(*gradients):
@@ -109,10 +110,11 @@ def test_the_live_chi_without_gradient_follows_every_step_of_the_actor(fused_act
 
 
 def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved():
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())  # the critic's Adam is fused: no version counters move
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny(optimizer_kwargs=dict(fused=True)))  # no version counters move
     model.learn(120)
-    critic, observations = model.policy.critic, th.randn(8, 3)
+    critic, target, observations = model.policy.critic, model.policy.critic_target, th.randn(8, 3)
     params, chi = critic.actor_record().params, critic.live_embedding(grad=False)
+    target_params = target.actor_record().params
     critic.optimizer.zero_grad()
     sum(q.sum() for q in critic(observations, th.zeros(8, 1))).backward()
     critic.optimizer.step()  # the encoder moved, the actor did not
@@ -124,8 +126,9 @@ def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved():
     actor.optimizer.zero_grad()
     actor(observations).sum().backward()
     actor.optimizer.step()
-    assert not th.equal(critic.actor_record().params, params)
-    th.testing.assert_close(critic.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
+    for module, before in ((critic, params), (target, target_params)):  # both critics read the actor that moved
+        assert not th.equal(module.actor_record().params, before)
+        th.testing.assert_close(module.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
 
 
 def test_the_critic_optimizer_is_fused_where_it_reads_chi():

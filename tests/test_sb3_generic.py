@@ -427,3 +427,11 @@ def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16], embedding_dim=4))
     with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[8]))
+    with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # a PeVFA argument of load's
+        cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16]), embedding_dim=4)
+    if cls is PPOPeVFA:  # the critic's entries a constructor would have added by default are not the stored ones
+        other = cls("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
+        other.save(tmp_path / "other")
+        with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):
+            cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16]))
+        assert cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))

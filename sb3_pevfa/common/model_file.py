@@ -3,11 +3,12 @@ resumed run can go on bit for bit; the ``policy_kwargs`` a loader gives, complet
 
 import io
 import pathlib
+import zipfile
 from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.save_util import json_to_data
 
 
 class ModelFile:
@@ -16,8 +17,10 @@ class ModelFile:
     ``policy_kwargs`` the constructor took (SB3 checks them against the stored ones, which hold the class's own
     entries too)."""
 
-    #: The entries the class adds to ``policy_kwargs`` itself (its PeVFA arguments)
+    #: The entries the class adds to ``policy_kwargs`` from its own arguments (its PeVFA arguments)
     added_policy_kwargs: ClassVar[tuple[str, ...]] = ()
+    #: The entries it adds with defaults of its own where ``policy_kwargs`` lacks them
+    default_policy_kwargs: ClassVar[dict[str, Any]] = {}
 
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
         self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
@@ -29,15 +32,17 @@ class ModelFile:
     @classmethod
     def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any):
         """SB3's ``load``. The global torch / numpy RNGs are left as SB3 leaves them (it seeds them with the model's
-        seed, if any, while it rebuilds the model). A ``policy_kwargs`` given is completed with the stored entries
-        the class added (``added_policy_kwargs``) that it lacks, before SB3 compares it with the stored one.
+        seed, if any, while it rebuilds the model). A ``policy_kwargs`` given is completed as the constructor
+        completes it (``added_policy_kwargs`` from ``load``'s keyword arguments, else the file's;
+        ``default_policy_kwargs`` where the file has them) before SB3 compares it with the stored one.
 
         :param restore_rng_state: Set the global torch / numpy RNG states to the saving process's, so that learning
             on (with the model's history or replay buffer, and seeded environments) continues bit for bit as the
             saved run would have
         """
         if kwargs.get("policy_kwargs") is not None:
-            kwargs["policy_kwargs"] = cls._completed_policy_kwargs(path, kwargs["policy_kwargs"], kwargs)
+            custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
+            kwargs["policy_kwargs"] = cls._completed_policy_kwargs(path, kwargs["policy_kwargs"], kwargs, custom_objects)
         model = super().load(path, *args, **kwargs)  # type: ignore[misc]
         rng_states = model.__dict__.pop("_rng_states", None)
         if restore_rng_state:
@@ -48,8 +53,15 @@ class ModelFile:
         return model
 
     @classmethod
-    def _completed_policy_kwargs(cls, path: Any, given: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
-        data, _, _ = load_from_zip_file(path, device=kwargs.get("device", "auto"),
-                                        custom_objects=kwargs.get("custom_objects"), print_system_info=False)  # fmt: skip
-        stored = (data or {}).get("policy_kwargs") or {}
-        return {**{name: stored[name] for name in cls.added_policy_kwargs if name in stored}, **given}
+    def _completed_policy_kwargs(
+        cls, path: Any, given: dict[str, Any], kwargs: dict[str, Any], custom_objects: dict[str, Any] | None
+    ) -> dict[str, Any]:
+        if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
+            path = f"{path}.zip"  # as SB3 looks for it
+        with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
+            stored = json_to_data(archive.read("data").decode(), custom_objects=custom_objects).get("policy_kwargs") or {}
+        added = {
+            name: kwargs.get(name, stored.get(name)) for name in cls.added_policy_kwargs if name in kwargs or name in stored
+        }
+        defaults = {name: value for name, value in cls.default_policy_kwargs.items() if name in stored}
+        return {**defaults, **added, **given}

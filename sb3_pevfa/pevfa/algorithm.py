@@ -45,6 +45,7 @@ from sb3_pevfa.pevfa.arguments import (
 )
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
 from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
+from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
@@ -63,6 +64,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
     """The PeVFA part of an on-policy algorithm; subclasses list it before their SB3 base (see the module)."""
 
     added_policy_kwargs = ADDED_POLICY_KWARGS
+    default_policy_kwargs = CRITIC_DEFAULTS
     policy: PeVFAActorCriticPolicy
     history: PolicyHistory
     recorder: PolicyRecorder

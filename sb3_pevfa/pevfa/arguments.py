@@ -52,9 +52,9 @@ PEVFA_ARGUMENTS = (
 #: its end-to-end encoder, which PPOPeVFA's defaults trade for a cheaper one: ``PPOPeVFA(..., **PAPER_SCHEDULE)``
 PAPER_SCHEDULE = dict(history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True)
 #: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
-#: The PeVFA arguments that build the policy, and the critic's entries spelled out: what the class adds to
-#: ``policy_kwargs`` itself
-ADDED_POLICY_KWARGS = (*PEVFA_ARGUMENTS[:6], *CRITIC_DEFAULTS)
+#: The PeVFA arguments that build the policy: the class adds them to ``policy_kwargs`` (and CRITIC_DEFAULTS where
+#: they are not given)
+ADDED_POLICY_KWARGS = PEVFA_ARGUMENTS[:6]
 _SUPPORTED_OBSERVATION_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
 
 
@@ -62,7 +62,7 @@ def pevfa_policy_kwargs(policy_kwargs: dict[str, Any] | None, arguments: dict[st
     """``policy_kwargs`` with the policy's PeVFA arguments added (they may not be given twice), and the critic's
     embedding stream spelled out (:data:`~sb3_pevfa.pevfa.critics.CRITIC_DEFAULTS` where not given), so that it is
     saved with the model."""
-    ours = {name: arguments[name] for name in PEVFA_ARGUMENTS[:6]}
+    ours = {name: arguments[name] for name in ADDED_POLICY_KWARGS}
     policy_kwargs = dict(policy_kwargs or {})
     clash = sorted(set(policy_kwargs) & set(ours))
     if clash:

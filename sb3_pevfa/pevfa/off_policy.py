@@ -138,6 +138,18 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
             layout=critic.layout,
         )
 
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: Any = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, Any]:
+        if reset_num_timesteps:  # SB3 counts the episodes anew
+            self._snapshot_episodes = 0
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "history"]
 

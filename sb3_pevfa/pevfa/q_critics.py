@@ -43,8 +43,8 @@ class SplitLinear(th.autograd.Function):
     @staticmethod
     def forward(ctx: Any, latent: th.Tensor, code: th.Tensor, weight: th.Tensor, bias: th.Tensor,
                 pairing: th.Tensor | None) -> th.Tensor:  # fmt: skip
-        """:param latent: ``(batch, width)``; :param code: ``(1 or P, weight columns - width)``; :param pairing: the
-        row of ``code`` of each input (None: one code for all)"""
+        """:param latent: ``(batch, width)``; :param code: ``(1, batch or P, weight columns - width)``; :param pairing:
+        the row of ``code`` of each input (None: one code for all, or one per input)"""
         width = latent.shape[1]
         per_code = F.linear(code, weight[:, width:], bias)
         ctx.save_for_backward(latent, code, weight, pairing)
@@ -55,7 +55,7 @@ class SplitLinear(th.autograd.Function):
         latent, code, weight, pairing = ctx.saved_tensors
         width = latent.shape[1]
         if pairing is None:
-            per_code = grad.sum(0, keepdim=True)
+            per_code = grad.sum(0, keepdim=True) if code.shape[0] == 1 else grad
         else:
             per_code = grad.new_zeros(code.shape[0], grad.shape[1]).index_add_(0, pairing, grad)
         needs = ctx.needs_input_grad
