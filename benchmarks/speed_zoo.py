@@ -66,11 +66,14 @@ def make_model(algorithm: type, entry: dict[str, Any], env_id: str, seed: int):
     entry = dict(entry)
     n_envs, normalize, policy = entry.pop("n_envs", 1), entry.pop("normalize", False), entry.pop("policy")
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed)
-    noise_type, noise_std = entry.pop("noise_type", None), entry.pop("noise_std", 0.0)
+    noise_type = entry.pop("noise_type", None)
     if noise_type is not None:  # rl-zoo3's action noise ("normal" / "ornstein-uhlenbeck", std per dimension)
-        sigma = noise_std * np.ones(env.action_space.shape[0])
-        noise = NormalActionNoise if noise_type == "normal" else OrnsteinUhlenbeckActionNoise
-        entry["action_noise"] = noise(mean=np.zeros_like(sigma), sigma=sigma)
+        sigma = entry.pop("noise_std") * np.ones(env.action_space.shape[0])
+        noises = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}
+        noise = [cls for name, cls in noises.items() if name in noise_type.strip()]
+        if not noise:
+            raise ValueError(f"Unknown noise_type {noise_type!r}, valid choices: {sorted(noises)}")
+        entry["action_noise"] = noise[0](mean=np.zeros_like(sigma), sigma=sigma)
     if normalize:
         kwargs = normalize if isinstance(normalize, dict) else {}
         env = VecNormalize(env, **({"gamma": entry["gamma"]} if "gamma" in entry else {}), **kwargs)

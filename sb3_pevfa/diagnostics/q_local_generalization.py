@@ -11,6 +11,7 @@ in the window have ended.
 
 import copy
 import warnings
+import weakref
 
 import numpy as np
 import torch as th
@@ -82,10 +83,10 @@ class QLocalGeneralizationCallback(BaseCallback):
         #: Windows open at the next snapshot recorded from now (one recorded before would have trained the critics on
         #: its transitions already)
         self._waiting_for = model.history.latest_policy_id
-        if getattr(self, "model_id", None) == id(model):
+        self._updates = model._n_updates  # the model's updates from now on (a learn() without the callback: not owed)
+        if getattr(self, "_model", lambda: None)() is model:
             return  # another learn() of the same run: its conventional critic goes on
-        self.model_id = id(model)
-        self._updates = model._n_updates
+        self._model = weakref.ref(model)
         policy = model.policy
         self.critic = ContinuousCritic(**policy._update_features_extractor(policy.critic_kwargs, None)).to(model.device)
         self.critic_target = copy.deepcopy(self.critic).train(False)
