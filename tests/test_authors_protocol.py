@@ -407,3 +407,23 @@ def test_embedding_diagnostics_are_logged_with_each_row_and_only_then():
     calls.clear()
     model.learn(300, log_interval=10**6, reset_num_timesteps=False)  # no row written: nothing computed
     assert not calls
+
+
+@pytest.mark.parametrize("rule", ["even", "sb3"])
+def test_the_diagnostics_conventional_critic_trains_as_the_models_critic(rule):
+    """The local-generalization diagnostic's V(s) fits each rollout in the model's minibatches (the authors' even
+    split), with its optimizer's settings and its initialization."""
+    from sb3_pevfa.diagnostics import LocalGeneralizationCallback
+
+    model = _model((30,), critic_minibatches=rule)
+    callback = LocalGeneralizationCallback(net_arch=(128, 128))
+    sizes = []
+    model.learn(150, callback=callback)  # one rollout of 5 episodes: 150 samples
+    callback.critic.register_forward_hook(lambda module, inputs, output: sizes.append(len(inputs[0])))
+    callback._train_critic(th.zeros(150, 1), th.zeros(150))
+    assert sizes == ([37] * 4 if rule == "even" else [32, 32, 32, 32, 22]) * 10  # 150 // (150 // 32) = 37
+    assert callback.optimizer.defaults["eps"] == 1e-8  # theirs (SB3's: 1e-5)
+    fresh = LocalGeneralizationCallback(net_arch=(400, 400))
+    fresh.init_callback(model)
+    first = fresh.critic[2].weight
+    assert abs(first.std().item() * 400**0.5 - 1) < 0.03 and th.all(fresh.critic[2].bias == 0)

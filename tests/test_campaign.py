@@ -463,6 +463,27 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     zoo = types.SimpleNamespace(**{**vars(grid), "protocol": "zoo", "grid": grid.grid})  # rl-zoo3 times evaluations in
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
     assert "(wall-clock beside; evaluations included)" in engine.report.report(["zoo"], None, "ppo", 2, None)
+    # another protocol's campaigns beside: the ratios per task in both, the paper's, and its aggregates
+    other = {"Hopper-v5": {"ppo": [{**scored(200.0), **made}], "opr": [{**scored(100.0), **made}] * 3},
+             "A": {"ppo": [{**scored(50.0), **made}]}}  # fmt: skip
+    runs["Hopper-v5"] = {"ppo": runs["A"]["ppo"], "opr": runs["A"]["opr"][:1]}
+    assert tables.beside(runs, other, "ppo", ("this", "that")) == [
+        "| task | opr: this / that / the paper |",
+        "|---|---|",
+        "| Hopper-v5 | 1.50x (1/2) / 0.50x (3/1) / — |",  # Table 1 has no "opr"
+        "| A | 1.50x (2/2) / — / — |",
+        "| B | — / — / — |",  # ppo's mean is negative: no ratio
+    ]
+    other["Hopper-v5"]["opr-e2e"] = other["Hopper-v5"].pop("opr")
+    runs["Hopper-v5"]["opr-e2e"] = runs["Hopper-v5"].pop("opr")
+    assert tables.beside(runs, other, "ppo", ("this", "that"))[2] == "| Hopper-v5 | 1.50x (1/2) / 0.50x (3/1) / 1.27x |"
+    authors = types.SimpleNamespace(**{**vars(grid), "protocol": "authors", "grid": grid.grid})
+    protocols = {"a": [authors], "b": [grid]}
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], protocols[names[0]]))
+    text = engine.report.report(["a"], None, "ppo", 2, None, ["b"])
+    assert "Beside campaigns b (sb3 protocol): each variant's ratio to ppo's mean max average return" in text
+    assert "in the authors' protocol, the sb3 protocol and the paper's Table 1:" in text
+    assert "Over tasks in the sb3 protocol:" in text
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
@@ -563,6 +584,16 @@ def test_an_authors_protocol_trial_trains_on_their_env_evaluates_sampled_actions
     assert {(deterministic, shape) for deterministic, shape, _ in seen} == {(False, (5,))}
     assert result["curve"]["steps"] == [2000, 4000, 6000] and result["resumed_from"] == state["timesteps"]
     assert result["timesteps"] >= 6000 and "rollout_episodes" in result["arguments"]
+
+
+def test_the_local_generalization_diagnostic_in_the_authors_protocol_scores_every_state_of_whole_episodes():
+    tiny = definitions.Campaign("authors", (TASK,), ("opr-e2e+local-generalization",), (0,), 2000, 2000, 1)
+    series = training.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
+    steps = np.array(series["timesteps"])
+    assert len(steps) > 5 and steps[-1] >= 2000  # iterations of 5 whole episodes (or 2000 steps), each one logged
+    # every rollout ends at an episode's end: each of its states has its Monte-Carlo return
+    assert series["n_states"] == np.diff(steps, prepend=0).tolist()
+    assert all(np.isfinite(series[key]).all() for key in ("pevfa_before", "pevfa_after", "vfa_before", "vfa_after"))
 
 
 def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_and_snapshots(tmp_path, monkeypatch):

@@ -74,10 +74,11 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     parser.add_argument("--baseline", default="ppo", help="the variant every ratio is to")
     parser.add_argument("--workers", type=int, default=2, help="cores the expected duration is for")
     parser.add_argument("--out", type=pathlib.Path, default=None, help="write report.md and curves.png in this folder")
+    parser.add_argument("--beside", nargs="+", default=None, help="campaigns of another protocol, their ratios beside")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     png = args.out / "curves.png" if args.out else None
-    text = report(args.campaign, args.storage, args.baseline, args.workers, png)
+    text = report(args.campaign, args.storage, args.baseline, args.workers, png, args.beside)
     if args.out:
         (args.out / "report.md").write_text(text)
     print(text)

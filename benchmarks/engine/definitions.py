@@ -112,6 +112,9 @@ VARIANTS: dict[str, dict[str, dict[str, Any] | None]] = {
         "opr-e2e": authors_protocol("ppo_pevfa"),
         # the paper's control: a fixed random code per policy in place of a learned representation (Ran PR)
         "random": authors_protocol("ppo_pevfa", representation="random"),
+        # OPR-E2E with the local-generalization diagnostic: a conventional critic of their PPO (2x128 ReLU, trained as
+        # its critic is) beside it; the diagnostic's critic counts in its CPU time
+        "opr-e2e+local-generalization": authors_protocol("ppo_pevfa"),
     },
     # the zoo variants (learning.py's), trained through rl-zoo3's entry point on one hyperparameter file (the conf)
     "zoo": dict(ZOO_VARIANTS),
@@ -233,6 +236,11 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-authors": Campaign("authors", TABLE1_TASKS, ("ppo", "opr-e2e"), tuple(range(5)), 2_000_000),
     # then the paper's Ran PR control in the same protocol: a fixed random code per policy in place of OPR
     "table1-authors-random": Campaign("authors", TABLE1_TASKS, ("random",), tuple(range(5)), 2_000_000),
+    # the local-generalization diagnostic in the same protocol, where its Table 1 misses the paper's direction: the
+    # tasks of the paper protocol's diagnostic (table1-local-generalization), so that the two protocols compare
+    "table1-authors-local-generalization": Campaign(
+        "authors", ("Hopper-v5", "Walker2d-v5"), ("opr-e2e+local-generalization",), tuple(range(3)), 2_000_000
+    ),
     # SAC against SACPeVFA (OPR, and a random code per snapshot) in rl-zoo3's SAC settings, after the authors' grids
     "sac-pevfa": Campaign("sac", ("Hopper-v5", "HalfCheetah-v5"), ("sac", "opr", "random"), tuple(range(5)), 200_000),
     # the local-generalization diagnostic adapted to Q (the critic's error on each next snapshot's returns), for the

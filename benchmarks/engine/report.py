@@ -14,6 +14,7 @@ from .tables import (
     PAPER_TABLE1,
     TARGET,
     aggregates,
+    beside,
     comparable,
     local_generalization,
     speed,
@@ -24,9 +25,20 @@ from .tables import (
 
 #: Protocols whose reports stand beside the paper's Table 1 and its target: what each one's deviations are from
 PUBLISHED = {"paper": ("the paper", PAPER_DEVIATIONS), "authors": ("the authors' code", AUTHORS_DEVIATIONS)}
+#: How the report names a protocol where its name alone would read oddly
+PROTOCOL_NAMES = {"authors": "authors' protocol"}
 
 
-def report(names: list[str], storage: str | None, baseline: str, workers: int, png: pathlib.Path | None) -> str:
+def report(
+    names: list[str],
+    storage: str | None,
+    baseline: str,
+    workers: int,
+    png: pathlib.Path | None,
+    beside_names: list[str] | None = None,
+) -> str:
+    """The report's text (and its figures written beside ``png``); ``beside_names``: campaigns of another protocol whose
+    ratios to the baseline, per task and over tasks, stand beside these campaigns'."""
     runs, progress, notes, campaigns = collect(names, storage)
     protocols = {c.protocol for c in campaigns}
     paper = len(protocols) == 1 and protocols <= set(PUBLISHED)
@@ -44,19 +56,29 @@ def report(names: list[str], storage: str | None, baseline: str, workers: int, p
         notes.append(f"Left out of the aggregates and the target: {', '.join(flipped)}, where {baseline}'s mean is not "
                      "positive (a ratio to it would reverse the order of the scores)")  # fmt: skip
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
-    beside = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
+    published = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
     aggregate_lines, normalized = aggregates(runs, baseline)
     zoo = [c for c in campaigns if c.protocol == "zoo"]  # an rl-zoo3 training times its evaluations with itself
     apart = "apart" if not zoo else "included" if len(zoo) == len(campaigns) else "apart, included in protocol zoo's runs"
     sections = [
         [f"Max average return (mean ± half std over seeds, runs in brackets), {steps} env steps, and each variant's "
-         f"ratio to {baseline}'s mean{beside}:"],
+         f"ratio to {baseline}'s mean{published}:"],
         table(runs, baseline, paper),
         [f"Over tasks: each run's max average return / {baseline}'s mean on its task (95 % stratified-bootstrap CIs "
          f"over the seeds of both); at {baseline}'s CPU time: its best return within {baseline}'s mean training CPU "
          "time (same task and machine):"],
         aggregate_lines,
     ]  # fmt: skip
+    if beside_names:
+        other, _, _, others = collect(beside_names, storage)
+        labels = tuple("/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in cs}))
+                       for cs in (campaigns, others))  # fmt: skip
+        sections += [[f"Beside campaigns {', '.join(beside_names)} ({labels[1]}): each variant's ratio to {baseline}'s "
+                      f"mean max average return (runs of both in brackets) in the {labels[0]}, the {labels[1]} and the "
+                      "paper's Table 1:"],
+                     beside(runs, other, baseline, labels),  # type: ignore[arg-type]
+                     [f"Over tasks in the {labels[1]}:"],
+                     aggregates(other, baseline)[0]]  # fmt: skip
     if paper:
         planned: dict[str, int] = {}
         for c in campaigns:

@@ -28,7 +28,6 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
 #: The reproduction's target, for the paper's OPR-E2E: above the baseline's mean on at least 5 of Table 1's 6 tasks,
 #: and an IQM of the baseline-normalized max average return of at least 1.15 whose 95 % CI's lower bound is above 1.0
 TARGET = {"variant": "opr-e2e", "tasks": 5, "iqm": 1.15, "low": 1.0}
-#: Protocols whose reports stand beside the paper's Table 1 and its target: what each one's deviations are from
 #: Means within this fraction of the baseline's are a tie, not above (InvertedDoublePendulum's ceiling of 9360)
 TIE = 0.005
 #: Column order of the variants
@@ -146,6 +145,30 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
         n = sum(len(runs[t][variant]) for t in tasks)
         lines.append(f"| {variant} | {len(tasks)} | {n} | {cells[0]} | {cells[1]} | {cells[2]}, {cells[3]} |")
     return lines, normalized
+
+
+def beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str]) -> list[str]:
+    """Per task, each variant's ratio of mean max average return to the baseline's in two protocols' runs (``labels``:
+    their names), and the paper's Table 1 where it has the variant."""
+    variants = [v for v in compared_variants(runs) if v != baseline and v in compared_variants(other)]
+
+    def ratio(by_variant: dict[str, list[dict[str, Any]]], variant: str) -> str:
+        scores, base = ([r["max_average_return"] for r in by_variant.get(v, [])] for v in (variant, baseline))
+        if not scores or not base or np.mean(base) <= 0:
+            return "—"
+        return f"{np.mean(scores) / np.mean(base):.2f}x ({len(scores)}/{len(base)})"
+
+    lines = ["| task | " + " | ".join(f"{v}: {labels[0]} / {labels[1]} / the paper" for v in variants) + " |"]
+    lines.append("|---" * (len(variants) + 1) + "|")
+    order = list(PAPER_TABLE1)  # Table 1's order, then the others as the runs have them
+    for task in sorted(dict.fromkeys([*runs, *other]), key=lambda t: order.index(t) if t in order else len(order)):
+        cells = []
+        for variant in variants:
+            published = PAPER_TABLE1.get(task, {})
+            paper = f"{published[variant][0] / published[baseline][0]:.2f}x" if {variant, baseline} <= set(published) else "—"
+            cells.append(f"{ratio(runs.get(task, {}), variant)} / {ratio(other.get(task, {}), variant)} / {paper}")
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def target(runs: Runs, baseline: str, planned: dict[str, int]) -> list[str]:

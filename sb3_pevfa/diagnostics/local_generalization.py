@@ -13,6 +13,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_pevfa.diagnostics.plotting import pyplot, save_figure
+from sb3_pevfa.pevfa.policies import init_normal_fan_in
 from sb3_pevfa.pevfa.records import PolicyRecord, flatten_observations, state_dim
 
 #: The four error curves, in ``pevfa/local_gen/<name>``.
@@ -43,7 +44,9 @@ class LocalGeneralizationCallback(BaseCallback):
 
     The four errors of iteration t are logged together when iteration t+1 starts (the "after" of the PeVFA needs
     the update), so they appear one log row later; ``pevfa/local_gen/timesteps`` says which rollout they belong to.
-    Only states whose episode ended inside the rollout are scored.
+    Only states whose episode ended inside the rollout are scored. The conventional critic fits the returns as the
+    model's critic does: its epochs and minibatches (``rollout_critic_minibatches``: the authors' even split where the
+    model has it), its optimizer and settings at the critic's learning rate, and ``weight_init``.
 
     :param net_arch: Layers of the conventional critic (SB3 PPO's default critic: 64-64, the policy's activation)
     """
@@ -59,7 +62,10 @@ class LocalGeneralizationCallback(BaseCallback):
         policy = self.model.policy
         layers = create_mlp(state_dim(policy.observation_space), 1, list(self.net_arch), policy.activation_fn)
         self.critic = nn.Sequential(*layers).to(self.model.device)
-        self.optimizer = th.optim.Adam(self.critic.parameters(), lr=self.model.critic_lr_schedule(1), eps=1e-5)
+        if policy.weight_init == "normal_fan_in":
+            init_normal_fan_in(self.critic)
+        kwargs = policy.optimizer_kwargs  # the model's optimizer settings (Adam's epsilon), at the critic's rate
+        self.optimizer = policy.optimizer_class(self.critic.parameters(), lr=self.model.critic_lr_schedule(1), **kwargs)
 
     def _on_step(self) -> bool:
         return True
@@ -70,8 +76,9 @@ class LocalGeneralizationCallback(BaseCallback):
     def _train_critic(self, states: th.Tensor, targets: th.Tensor) -> None:
         for group in self.optimizer.param_groups:
             group["lr"] = self.model.critic_lr_schedule(self.model._current_progress_remaining)
-        for _ in range(self.model.n_epochs):
-            for index in th.randperm(len(states)).split(self.model.batch_size):
+        n_epochs, batch_size, used = self.model.rollout_critic_minibatches(len(states))
+        for _ in range(n_epochs):
+            for index in th.randperm(len(states))[:used].split(batch_size):
                 loss = F.mse_loss(self.critic(states[index]).flatten(), targets[index])
                 self.optimizer.zero_grad()
                 loss.backward()

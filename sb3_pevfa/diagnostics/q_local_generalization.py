@@ -18,7 +18,6 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update, update_learning_rate
-from torch.nn import functional as F
 
 from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS
 from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
@@ -116,20 +115,10 @@ class QLocalGeneralizationCallback(BaseCallback):
         model = self.model
         update_learning_rate(self.optimizer, model.lr_schedule(model._current_progress_remaining))
         data = model.replay_buffer.sample(model.batch_size, env=model._vec_normalize_env)
-        discounts = getattr(data, "discounts", None)  # SB3 >= 2.7's n-step returns
-        discounts = model.gamma if discounts is None else discounts
         with th.no_grad():
             next_actions, next_log_prob = model._live_next_actions(data.next_observations)
-            next_q, _ = th.min(th.cat(self.critic_target(data.next_observations, next_actions), dim=1), dim=1, keepdim=True)
-            alpha = model._entropy_term()
-            if alpha is not None and next_log_prob is not None:
-                next_q = next_q - alpha * next_log_prob.reshape(-1, 1)
-            targets = data.rewards + (1 - data.dones) * discounts * next_q
-        values = self.critic(data.observations, data.actions)
-        loss = model.critic_loss_scale * sum(F.mse_loss(value, targets) for value in values)
-        self.optimizer.zero_grad()
-        loss.backward()  # type: ignore[union-attr]
-        self.optimizer.step()
+            targets = model.td_targets(data, self.critic_target(data.next_observations, next_actions), next_log_prob)
+        model.fit_critic(self.critic(data.observations, data.actions), targets, self.optimizer)
         if polyak:
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), model.tau)
 

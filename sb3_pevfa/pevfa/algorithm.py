@@ -396,18 +396,23 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         """Epochs and minibatch size of the critic's steps on the rollout in the ``critic_first`` order."""
         raise NotImplementedError
 
+    def rollout_critic_minibatches(self, n: int) -> tuple[int, int, int]:
+        """Epochs, minibatch size and the samples used (of ``n`` shuffled ones) of the critic's fit to a rollout of
+        ``n`` samples in the ``critic_first`` order (also what a conventional critic beside the run trains on): the
+        remainder is the last minibatch, or with ``critic_minibatches="even"`` the authors' split, N // (N //
+        batch_size) samples each, the remainder left out."""
+        n_epochs, batch_size = self._rollout_critic_schedule()
+        if self.critic_minibatches != "even":
+            return n_epochs, batch_size, n
+        n_batches = max(n // batch_size, 1)
+        return n_epochs, n // n_batches, n_batches * (n // n_batches)
+
     def _train_critic_on_rollout(self) -> list[float]:
         """Critic epochs on the current rollout with chi of its behaviour policy (``critic_first`` order)."""
         observations = fast_path.flat_observations(self.rollout_buffer, self.device, env_major=False)
         returns = th.as_tensor(self.rollout_buffer.returns.reshape(-1), device=self.device)
-        n_epochs, batch_size = self._rollout_critic_schedule()
+        n_epochs, batch_size, stop = self.rollout_critic_minibatches(len(returns))
         n = len(returns)
-        if self.critic_minibatches == "even":  # the authors': N // (N // batch_size) each, the remainder left out
-            n_batches = max(n // batch_size, 1)
-            batch_size = n // n_batches
-            stop = n_batches * batch_size
-        else:
-            stop = n
         losses = []
         for _ in range(n_epochs):
             indices = np.random.permutation(n)

@@ -245,25 +245,35 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         data = self.replay_buffer.sample(per_policy * n_policies, env=self._vec_normalize_env)  # type: ignore[union-attr]
         records = PolicyRecord.from_numpy(self.history.records(ids), self.device)
         pairing = th.arange(n_policies, device=self.device).repeat_interleave(per_policy)  # snapshot of each transition
-        discounts = getattr(data, "discounts", None)  # SB3 >= 2.7's n-step returns
-        discounts = self.gamma if discounts is None else discounts
         with th.no_grad():
             extractor = self.actor.features_extractor
             extractor.train(False)  # the live actor's features, without moving its statistics (BatchNorm, dropout)
             features = self.actor.extract_features(data.next_observations, extractor)
             extractor.train(self.actor.training)
             actions, log_prob = self._snapshot_actions(records, features.reshape(n_policies, per_policy, -1))
-            next_q = th.cat(target(data.next_observations, actions, target.representation(records), pairing), dim=1)
-            next_q, _ = th.min(next_q, dim=1, keepdim=True)
-            alpha = self._entropy_term()
-            if alpha is not None and log_prob is not None:
-                next_q = next_q - alpha * log_prob.reshape(-1, 1)
-            targets = data.rewards + (1 - data.dones) * discounts * next_q
+            next_values = target(data.next_observations, actions, target.representation(records), pairing)
+            targets = self.td_targets(data, next_values, log_prob)
         values = critic(data.observations, data.actions, critic.representation(records), pairing)
+        return self.fit_critic(values, targets, critic.optimizer)
+
+    def td_targets(self, data: Any, next_values: tuple[th.Tensor, ...], log_prob: th.Tensor | None) -> th.Tensor:
+        """SB3's targets r + gamma (1 - d) (min_i Q'_i(s', a') [- alpha log pi(a' | s')]) of replay ``data`` from the
+        target critics' values at the next actions (and the actions' log-probabilities: SAC)."""
+        discounts = getattr(data, "discounts", None)  # SB3 >= 2.7's n-step returns
+        discounts = self.gamma if discounts is None else discounts
+        next_q, _ = th.min(th.cat(next_values, dim=1), dim=1, keepdim=True)
+        alpha = self._entropy_term()
+        if alpha is not None and log_prob is not None:
+            next_q = next_q - alpha * log_prob.reshape(-1, 1)
+        return data.rewards + (1 - data.dones) * discounts * next_q
+
+    def fit_critic(self, values: tuple[th.Tensor, ...], targets: th.Tensor, optimizer: th.optim.Optimizer) -> float:
+        """One step of ``optimizer`` on SB3's critic loss (``critic_loss_scale`` times the critics' summed MSE); the
+        loss."""
         loss = self.critic_loss_scale * sum(F.mse_loss(value, targets) for value in values)
-        critic.optimizer.zero_grad()
+        optimizer.zero_grad()
         loss.backward()  # type: ignore[union-attr]
-        critic.optimizer.step()
+        optimizer.step()
         return float(loss.item())  # type: ignore[union-attr]
 
     # ------------------------------------------------------------------ files

@@ -50,6 +50,14 @@ def _check_aux(observation_space: spaces.Space, n_state_action_pairs: int) -> No
         raise ValueError("objective 'aux' needs state-action pairs: n_state_action_pairs must be > 0")
 
 
+def init_normal_fan_in(model: nn.Module) -> None:
+    """Every linear layer of ``model``: weights N(0, 1 / fan_in), biases 0 (``weight_init="normal_fan_in"``)."""
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            nn.init.normal_(module.weight, std=module.in_features**-0.5)
+            nn.init.zeros_(module.bias)
+
+
 def _check_actor_options(
     action_space: spaces.Space,
     mean_activation_fn: type[nn.Module] | None,
@@ -209,10 +217,7 @@ class PeVFAActorCriticPolicy(OnePassTrainingMode, ActorCriticPolicy):
         if self.ortho_init:
             self.value_net.init_weights(self.init_weights)
         if self.weight_init == "normal_fan_in":  # before the objectives copy the encoder (CL's key encoder)
-            for module in self.modules():
-                if isinstance(module, nn.Linear):
-                    nn.init.normal_(module.weight, std=module.in_features**-0.5)
-                    nn.init.zeros_(module.bias)
+            init_normal_fan_in(self)
         self.code_dim = self.embedding_dim if self.representation.uses_codes else 0
         self.objectives = nn.ModuleDict(
             {
