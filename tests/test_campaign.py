@@ -435,7 +435,7 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     assert (low, high) == (2.0, 2.0)
 
     def scored(value: float, cpu: float = 1.0) -> dict:
-        return {"max_average_return": value, "cpu_seconds": 2.0, "curve": {"mean": [value], "cpu_s": [cpu]}}
+        return {"max_average_return": value, "cpu_seconds": 2.0, "curve": {"mean": [value], "cpu_s": [cpu], "steps": [1000]}}
 
     # a task where the baseline's mean is negative: -50 against -100 is better, a ratio 0.5 would read worse
     runs = {"A": {"ppo": [scored(100.0)] * 2, "opr-e2e": [scored(150.0)] * 2},
@@ -484,6 +484,16 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     assert "Beside campaigns b (sb3 protocol): each variant's ratio to ppo's mean max average return" in text
     assert "in the authors' protocol, the sb3 protocol and the paper's Table 1:" in text
     assert "Over tasks in the sb3 protocol:" in text
+    assert "ppo in both protocols: its best evaluation within 1,000 env steps" in text
+    # the baseline's best evaluation by the shorter budget and over the whole run, in both protocols
+    curve = {"steps": [500, 1000, 2000], "mean": [10.0, 30.0, 50.0]}
+    mine = {"T": {"ppo": [{"curve": curve, "max_average_return": 50.0, "cpu_seconds": 120.0}] * 2}}
+    theirs = {"T": {"ppo": [{"curve": {**curve, "mean": [40.0, 20.0, 0.0]}, "max_average_return": 40.0,
+                             "cpu_seconds": 60.0}]}, "U": {}}  # fmt: skip
+    assert tables.baseline_beside(mine, theirs, "ppo", ("this", "that"), 1000)[2:] == [
+        "| T | 30 ± 0 (2) | 50 ± 0 (2), 2 CPU-min | 40 ± 0 (1) | 40 ± 0 (1), 1 CPU-min |",
+        "| U | — | — | — | — |",
+    ]
 
 
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():

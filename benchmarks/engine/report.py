@@ -14,6 +14,7 @@ from .tables import (
     PAPER_TABLE1,
     TARGET,
     aggregates,
+    baseline_beside,
     beside,
     comparable,
     local_generalization,
@@ -79,6 +80,11 @@ def report(
                      beside(runs, other, baseline, labels),  # type: ignore[arg-type]
                      [f"Over tasks in the {labels[1]}:"],
                      aggregates(other, baseline)[0]]  # fmt: skip
+        steps = min(c.timesteps for c in (*campaigns, *others))
+        sections += [[f"{baseline} in both protocols: its best evaluation within {steps:,} env steps (the shorter "
+                      "protocol's budget) and over its whole run, mean ± half std over seeds (runs), and its CPU "
+                      "minutes per run:"],
+                     baseline_beside(runs, other, baseline, labels, steps)]  # fmt: skip
     if paper:
         planned: dict[str, int] = {}
         for c in campaigns:

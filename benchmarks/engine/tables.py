@@ -147,6 +147,13 @@ def aggregates(runs: Runs, baseline: str) -> tuple[list[str], dict[str, aggregat
     return lines, normalized
 
 
+def table1_order(*runs: Runs) -> list[str]:
+    """The tasks of the runs in Table 1's order, then the others in the runs' order."""
+    order = list(PAPER_TABLE1)
+    tasks = dict.fromkeys(task for some in runs for task in some)
+    return sorted(tasks, key=lambda t: order.index(t) if t in order else len(order))
+
+
 def beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str]) -> list[str]:
     """Per task, each variant's ratio of mean max average return to the baseline's in two protocols' runs (``labels``:
     their names), and the paper's Table 1 where it has the variant."""
@@ -160,14 +167,33 @@ def beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str]) -> l
 
     lines = ["| task | " + " | ".join(f"{v}: {labels[0]} / {labels[1]} / the paper" for v in variants) + " |"]
     lines.append("|---" * (len(variants) + 1) + "|")
-    order = list(PAPER_TABLE1)  # Table 1's order, then the others as the runs have them
-    for task in sorted(dict.fromkeys([*runs, *other]), key=lambda t: order.index(t) if t in order else len(order)):
+    for task in table1_order(runs, other):
         cells = []
         for variant in variants:
             published = PAPER_TABLE1.get(task, {})
             paper = f"{published[variant][0] / published[baseline][0]:.2f}x" if {variant, baseline} <= set(published) else "—"
             cells.append(f"{ratio(runs.get(task, {}), variant)} / {ratio(other.get(task, {}), variant)} / {paper}")
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def baseline_beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str], steps: int) -> list[str]:
+    """Per task, the baseline's best evaluation within ``steps`` env steps and over its whole run (mean ± half std over
+    seeds, runs in brackets) and its CPU minutes per run, in two protocols' runs (``labels``: their names)."""
+
+    def cells(variant_runs: list[dict[str, Any]]) -> str:
+        if not variant_runs:
+            return "— | —"
+        early = np.array([aggregate.best_within(r["curve"]["mean"], r["curve"]["steps"], steps) for r in variant_runs])
+        whole = np.array([r["max_average_return"] for r in variant_runs])
+        minutes = np.mean([r["cpu_seconds"] for r in variant_runs]) / 60
+        return f"{_cell(early)} | {_cell(whole)}, {minutes:.0f} CPU-min"
+
+    head = " | ".join(f"{label}: by {steps:,} steps | {label}: whole run" for label in labels)
+    lines = [f"| task | {head} |", "|---" * 5 + "|"]
+    for task in table1_order(runs, other):
+        both = (r.get(task, {}).get(baseline, []) for r in (runs, other))
+        lines.append(f"| {task} | " + " | ".join(cells(variant_runs) for variant_runs in both) + " |")
     return lines
 
 
