@@ -31,6 +31,18 @@ class DictPendulum(gym.ObservationWrapper):
         return {"angle": observation[:2], "speed": observation[2:]}
 
 
+def _can_flush_denormals() -> bool:
+    flushed = th.set_flush_denormal(True)
+    th.set_flush_denormal(False)
+    return flushed
+
+
+#: Skips a test of flushed denormals on a CPU that cannot flush them (``torch.set_flush_denormal``)
+needs_denormal_flush = pytest.mark.skipif(
+    not _can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)"
+)
+
+
 def read_progress(folder: pathlib.Path) -> list[dict[str, str]]:
     with open(folder / "progress.csv") as handle:
         return list(csv.DictReader(handle))

@@ -5,7 +5,16 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import AS_SB3, FAST, DictPendulum, actor_parameters, module_parameters, read_progress, sb3_twin_runs
+from conftest import (
+    AS_SB3,
+    FAST,
+    DictPendulum,
+    actor_parameters,
+    module_parameters,
+    needs_denormal_flush,
+    read_progress,
+    sb3_twin_runs,
+)
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import CheckpointCallback
@@ -92,13 +101,7 @@ def test_vectorized_and_normalized_envs(representation):
         np.testing.assert_array_equal(states, env.normalize_obs(raw_states.reshape(-1, 3)).reshape(states.shape))
 
 
-def _can_flush_denormals() -> bool:
-    flushed = th.set_flush_denormal(True)
-    th.set_flush_denormal(False)
-    return flushed
-
-
-@pytest.mark.skipif(not _can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)")
+@needs_denormal_flush
 def test_flush_denormals_restores_the_threads_setting():
     denormal = th.tensor([1e-40])
     assert not denormals_flushed() and (denormal * 1.0).item() > 0
@@ -126,7 +129,7 @@ def test_flush_denormals_restores_the_threads_setting():
         th.set_flush_denormal(False)
 
 
-@pytest.mark.skipif(not _can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)")
+@needs_denormal_flush
 def test_flush_denormal_clears_denormal_adam_moments_in_the_update_only(tmp_path):
     """Denormal moments (of units without gradient) become 0 in the update; the rollout runs with IEEE arithmetic;
     ``flush_denormal=False`` keeps them, and survives save / load."""

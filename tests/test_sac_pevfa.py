@@ -6,6 +6,7 @@ import copy
 import numpy as np
 import pytest
 import torch as th
+from conftest import needs_denormal_flush
 from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
@@ -29,7 +30,8 @@ def _sb3_name(key: str) -> str:
 @pytest.mark.parametrize(("sb3_class", "pevfa_class"), [(SAC, SACPeVFA), (TD3, TD3PeVFA)])
 def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class):
     sb3 = sb3_class("MlpPolicy", "Pendulum-v1", **tiny())
-    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, **tiny())
+    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, flush_denormal=False,
+                       **tiny())  # fmt: skip
 
     def compared() -> tuple[dict, dict]:
         mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if not k.endswith(("_codes", "_states"))}
@@ -44,6 +46,36 @@ def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_c
     mine, theirs = compared()
     assert all(th.equal(mine[k], theirs[k]) for k in theirs), [k for k in theirs if not th.equal(mine[k], theirs[k])]
     assert ours.history.n_policies >= 1  # the snapshots are recorded all the same
+
+
+@needs_denormal_flush
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_train_flushes_denormal_adam_moments_and_collecting_does_not(tmp_path, pevfa_class):
+    """A moment of a weight without gradient (after a dead ReLU unit) is 0 after ``train`` where denormals are
+    flushed, still denormal with ``flush_denormal=False``; the env steps run with IEEE arithmetic; the setting is saved."""
+    from sb3_pevfa.pevfa.denormals import denormals_flushed
+
+    for flush in (True, False):
+        model = pevfa_class("MlpPolicy", "Pendulum-v1", flush_denormal=flush, **tiny())
+        model.learn(101)
+        head = model.policy.critic.q_networks[0].head
+        with th.no_grad():
+            head.hidden[0].weight[0], head.hidden[0].bias[0] = 0.0, -1.0
+        state = model.critic.optimizer.state[head.output.weight]
+        state["exp_avg"][0, 0] = 1e-40
+        seen = []
+        collect = model.collect_rollouts
+        model.collect_rollouts = lambda *a, collect=collect, seen=seen, **k: (
+            seen.append(denormals_flushed()) or collect(*a, **k)
+        )  # type: ignore
+        model.learn(4, reset_num_timesteps=False)
+        moment = state["exp_avg"][0, 0].item()
+        assert moment == 0.0 if flush else 0.0 < moment < th.finfo(th.float32).tiny
+        assert seen and not any(seen) and not denormals_flushed()
+    model.save(tmp_path / "model.zip")
+    assert pevfa_class.load(tmp_path / "model.zip").flush_denormal is False
+    with pytest.raises(ValueError, match="flush_denormal must be a bool"):
+        pevfa_class("MlpPolicy", "Pendulum-v1", flush_denormal=1)
 
 
 @pytest.mark.parametrize("live_encoder_gradient", [True, False])

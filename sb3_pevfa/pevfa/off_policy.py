@@ -21,6 +21,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_pevfa.common.model_file import ModelFile
+from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
 
@@ -79,6 +80,8 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
     #: The names of SB3's lists of the critic's and its target's BatchNorm statistics
     critic_norm_stats: tuple[str, str] = ("critic_batch_norm_stats", "critic_batch_norm_stats_target")
     live_encoder_gradient: bool
+    #: Denormals flushed to zero in ``train`` (models saved without the attribute load with it)
+    flush_denormal: bool = True
     snapshot_freq: int
     history_max_policies: int
     history_train_freq: int
@@ -101,6 +104,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         history_batch_policies: int = 8,
         history_learning_starts: int = 0,
         live_encoder_gradient: bool = True,
+        flush_denormal: bool = True,
         policy_kwargs: dict[str, Any] | None = None,
         _init_setup_model: bool = True,
         **kwargs: Any,
@@ -112,9 +116,11 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         check_snapshot_arguments(arguments)
         for name in SNAPSHOT_ARGUMENTS:
             setattr(self, name, int(arguments[name]))
-        if not isinstance(live_encoder_gradient, bool):
-            raise ValueError(f"live_encoder_gradient must be a bool, got {live_encoder_gradient!r}")
         self.live_encoder_gradient = live_encoder_gradient
+        for name in ("live_encoder_gradient", "flush_denormal"):
+            if not isinstance(arguments[name], bool):
+                raise ValueError(f"{name} must be a bool, got {arguments[name]!r}")
+        self.flush_denormal = flush_denormal
         self._history_credit = 0
         self._snapshot_episodes = 0  # SB3's episode count at the latest snapshot
         if _init_setup_model:
@@ -205,7 +211,12 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         return policy_id
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SB3's update, then the snapshots and the historical critic updates of its ``gradient_steps``."""
+        """SB3's update, then the snapshots and the historical critic updates of its ``gradient_steps``, float32
+        denormals flushed to zero unless ``flush_denormal`` is False (:mod:`~sb3_pevfa.pevfa.denormals`)."""
+        with flush_denormals(self.flush_denormal):
+            self._train(gradient_steps, batch_size)
+
+    def _train(self, gradient_steps: int, batch_size: int) -> None:
         before = self._n_updates
         super().train(gradient_steps, batch_size)  # type: ignore[safe-super]
         if not self.history.n_policies or before // self.snapshot_freq < self._n_updates // self.snapshot_freq:

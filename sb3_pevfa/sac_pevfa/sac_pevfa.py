@@ -37,6 +37,10 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
         as the paper's E2E); False: only the snapshots' updates train it and chi of the live actor is computed once
         per move of the actor or encoder without gradient (cheaper; unstable at a high learning rate: the encoder
         then grew chi without bound in SB3's infinite-horizon test, lr 0.01)
+    :param flush_denormal: Denormal numbers flushed to zero during ``train`` with one torch thread (as
+        :class:`~sb3_pevfa.PPOPeVFA`'s update: Adam's moments of units without gradient decay through the denormal
+        range, where the CPU is tens of times slower); False: IEEE denormals, and SB3's SAC bit for bit where the
+        representation is ``none`` and ``history_train_freq`` 0
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
