@@ -6,6 +6,7 @@ updates draw 8 distinct snapshots); then each part is timed over ``--steps`` cal
 snapshots' update), and one snapshots' update (``OffPolicyPeVFA._train_on_snapshots``) split into its stages.
 
     python docs/notes/scripts/sac_step_parts.py --env Hopper-v5
+    python docs/notes/scripts/sac_step_parts.py --env Hopper-v5 --flush-denormals   # for the whole process
 """
 
 import argparse
@@ -82,10 +83,14 @@ def main() -> None:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--flush-denormals", action="store_true", help="torch.set_flush_denormal(True) from the start")
     args = parser.parse_args()
     th.set_num_threads(1)
+    th.set_flush_denormal(args.flush_denormals)
     sac = SAC("MlpPolicy", args.env, learning_starts=500, seed=0).learn(args.warmup)
-    pevfa = SACPeVFA("MlpPolicy", args.env, learning_starts=500, seed=0, history_train_freq=0, snapshot_freq=50)
+    pevfa = SACPeVFA(  # flush_denormal=False: the process's setting throughout
+        "MlpPolicy", args.env, learning_starts=500, seed=0, history_train_freq=0, snapshot_freq=50, flush_denormal=False
+    )
     pevfa.learn(args.warmup)
     print(f"| part | ms per call ({args.steps} calls) |\n|---|---|")
     print(f"| SB3 SAC: one gradient step | {ms_per_call(lambda: sac.train(1, sac.batch_size), args.steps):.2f} |")
