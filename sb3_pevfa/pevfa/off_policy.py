@@ -116,11 +116,10 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         check_snapshot_arguments(arguments)
         for name in SNAPSHOT_ARGUMENTS:
             setattr(self, name, int(arguments[name]))
-        self.live_encoder_gradient = live_encoder_gradient
         for name in ("live_encoder_gradient", "flush_denormal"):
             if not isinstance(arguments[name], bool):
                 raise ValueError(f"{name} must be a bool, got {arguments[name]!r}")
-        self.flush_denormal = flush_denormal
+        self.live_encoder_gradient, self.flush_denormal = live_encoder_gradient, flush_denormal
         self._history_credit = 0
         self._snapshot_episodes = 0  # SB3's episode count at the latest snapshot
         if _init_setup_model:
