@@ -389,6 +389,20 @@ def test_report_statistics_by_hand(monkeypatch):
                                              "missed by 3 task(s)"]  # fmt: skip
     monkeypatch.setitem(tables.TARGET, "tasks", 2)
     assert tables.target(two, "ppo", {})[0].endswith("IQM 1.26 [1.26, 1.26]: met")
+    # SAC's target: both tasks, IQM 1.1, no bound on the CI, and the median speed ratio (same machine) at least 0.7x
+    sac = {task: {"sac": [{**r, "steps_per_cpu_second": 100.0} for r in bv["ppo"]],
+                  "opr": [{**r, "steps_per_cpu_second": speed} for r, speed in zip(bv["opr-e2e"], (60.0, 90.0))]}
+           for task, bv in two.items()}  # fmt: skip
+    spec = tables.TARGETS["sac"]
+    assert tables.target(sac, "sac", {}, spec) == [
+        "- opr: above sac on 2 of 2 tasks, IQM 1.26 [1.26, 1.26], 0.75x sac's steps per CPU-second (median of 4 runs): met"
+    ]
+    sac["B"]["opr"][1]["steps_per_cpu_second"] = 60.0  # ratios 0.6, 0.9, 0.6, 0.6
+    assert tables.target(sac, "sac", {}, spec)[0].endswith("0.60x sac's steps per CPU-second (median of 4 runs): "
+                                                           "missed by 0.10x of speed")  # fmt: skip
+    assert tables.target_wording(spec, "sac") == (
+        "above sac's mean on at least 2 of its 2 tasks, IQM at least 1.1, at 0.7x sac's env steps per CPU-second or more"
+    )
     two["A"]["opr-e2e+local-generalization"] = two["A"]["opr-e2e"]  # the diagnostic's runs: in the table only
     assert "opr-e2e+local-generalization" in tables.table(two, "ppo", paper=False)[0]
     assert [row.split(" |")[0] for row in tables.aggregates(two, "ppo")[0][2:]] == ["| ppo", "| opr-e2e"]
@@ -460,9 +474,15 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     text = engine.report.report(["sign"], None, "ppo", 2, None)
     assert "- Left out of the aggregates and the target: B, where ppo's mean is not positive" in text
     assert "Speed: ppo's env steps per CPU-second (wall-clock beside; evaluations apart)" in text
+    assert "Against the target" not in text  # protocol sb3 has none
     zoo = types.SimpleNamespace(**{**vars(grid), "protocol": "zoo", "grid": grid.grid})  # rl-zoo3 times evaluations in
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [zoo]))
     assert "(wall-clock beside; evaluations included)" in engine.report.report(["zoo"], None, "ppo", 2, None)
+    sac = types.SimpleNamespace(**{**vars(grid), "protocol": "sac", "grid": grid.grid})  # a protocol with a target
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [sac]))
+    assert "Against the target for opr (above ppo's mean on at least 2 of its 2 tasks, IQM at least 1.1, at 0.7x" in (
+        engine.report.report(["sac"], None, "ppo", 2, None)
+    )
     # another protocol's campaigns beside: the ratios per task in both, the paper's, and its aggregates
     other = {"Hopper-v5": {"ppo": [{**scored(200.0), **made}], "opr": [{**scored(100.0), **made}] * 3},
              "A": {"ppo": [{**scored(50.0), **made}]}}  # fmt: skip
