@@ -425,5 +425,5 @@ def test_the_diagnostics_conventional_critic_trains_as_the_models_critic(rule):
     assert callback.optimizer.defaults["eps"] == 1e-8  # theirs (SB3's: 1e-5)
     fresh = LocalGeneralizationCallback(net_arch=(400, 400))
     fresh.init_callback(model)
-    first = fresh.critic[2].weight
-    assert abs(first.std().item() * 400**0.5 - 1) < 0.03 and th.all(fresh.critic[2].bias == 0)
+    second = fresh.critic[2].weight  # 400 x 400
+    assert abs(second.std().item() * 400**0.5 - 1) < 0.03 and th.all(fresh.critic[2].bias == 0)

@@ -483,6 +483,7 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     assert "Against the target for opr (above ppo's mean on at least 2 of its 2 tasks, IQM at least 1.1, at 0.7x" in (
         engine.report.report(["sac"], None, "ppo", 2, None)
     )
+    assert "Against the target" not in engine.report.report(["sac"], None, "sac", 2, None)  # no run of the baseline
     # another protocol's campaigns beside: the ratios per task in both, the paper's, and its aggregates
     other = {"Hopper-v5": {"ppo": [{**scored(200.0), **made}], "opr": [{**scored(100.0), **made}] * 3},
              "A": {"ppo": [{**scored(50.0), **made}]}}  # fmt: skip
@@ -497,6 +498,9 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     other["Hopper-v5"]["opr-e2e"] = other["Hopper-v5"].pop("opr")
     runs["Hopper-v5"]["opr-e2e"] = runs["Hopper-v5"].pop("opr")
     assert tables.beside(runs, other, "ppo", ("this", "that"))[2] == "| Hopper-v5 | 1.50x (1/2) / 0.50x (3/1) / 1.27x |"
+    assert tables.beside(runs, {"A": {"ppo": other["A"]["ppo"]}}, "ppo", ("this", "that")) == [
+        "No variant but ppo in both protocols' runs."
+    ]
     authors = types.SimpleNamespace(**{**vars(grid), "protocol": "authors", "grid": grid.grid})
     protocols = {"a": [authors], "b": [grid]}
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], protocols[names[0]]))

@@ -87,13 +87,15 @@ def report(
                       "minutes per run:"],
                      baseline_beside(runs, other, baseline, labels, steps)]  # fmt: skip
     spec = TARGETS.get(next(iter(protocols))) if len(protocols) == 1 else None
+    lines_of_target = []
     if spec is not None:
         planned: dict[str, int] = {}
         for c in campaigns:
             for variant in c.variants:
                 planned[variant] = planned.get(variant, 0) + len(c.tasks) * len(c.seeds)
-        sections += [[f"Against the target for {spec['variant']} ({target_wording(spec, baseline)}):"],
-                     target(runs, baseline, planned, spec)]  # fmt: skip
+        lines_of_target = target(runs, baseline, planned, spec)
+    if lines_of_target:  # where the target's variant and the baseline have runs
+        sections += [[f"Against the target for {spec['variant']} ({target_wording(spec, baseline)}):"], lines_of_target]
     if paper:
         ratios = {v: np.mean([PAPER_TABLE1[t][v][0] / PAPER_TABLE1[t]["ppo"][0] for t in PAPER_TABLE1]) for v in ORDER[1:5]}
         sections.append(

@@ -165,6 +165,8 @@ def beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str]) -> l
     """Per task, each variant's ratio of mean max average return to the baseline's in two protocols' runs (``labels``:
     their names), and the paper's Table 1 where it has the variant."""
     variants = [v for v in compared_variants(runs) if v != baseline and v in compared_variants(other)]
+    if not variants:
+        return [f"No variant but {baseline} in both protocols' runs."]
 
     def ratio(by_variant: dict[str, list[dict[str, Any]]], variant: str) -> str:
         scores, base = ([r["max_average_return"] for r in by_variant.get(v, [])] for v in (variant, baseline))

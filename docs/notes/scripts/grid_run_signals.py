@@ -31,6 +31,8 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True)
     args = parser.parse_args()
     grid = definitions.CAMPAIGNS[args.campaign]
+    if args.variant in definitions.LOCAL_GENERALIZATION:
+        parser.error("the diagnostic's variants log through the engine's own logger: choose another variant")
     campaign = definitions.Campaign(
         grid.protocol, (args.task,), (args.variant,), (args.seed,), args.steps, grid.eval_freq, grid.eval_episodes
     )
