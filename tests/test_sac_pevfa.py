@@ -235,7 +235,7 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
     train = model._train_on_snapshots
     model._train_on_snapshots = lambda: calls.append(1) or train()  # type: ignore[method-assign]
     model.learn(300)  # gradient steps from step 100; snapshot updates from step 150: 150 steps -> 30 updates
-    assert len(calls) == 30
+    assert len(calls) == 30 and model.logger.name_to_value["pevfa/n_history_updates"] == 30  # logged: so far
     before = copy.deepcopy(model.policy.critic.state_dict())
     loss = train()
     assert np.isfinite(loss) and any(not th.equal(v, model.policy.critic.state_dict()[k]) for k, v in before.items())
@@ -268,7 +268,7 @@ def test_several_envs_under_vecnormalize():
     sample = model.replay_buffer.sample
     model.replay_buffer.sample = lambda n, env=None: seen.append(env) or sample(n, env=env)  # type: ignore[method-assign]
     model.learn(300)
-    assert model.history.n_policies > 5 and model.logger.name_to_value["pevfa/history_updates"] > 0
+    assert model.history.n_policies > 5 and model.logger.name_to_value["pevfa/n_history_updates"] > 0
     assert seen and all(e is env for e in seen)  # the snapshots' transitions in today's normalization, as SB3's
 
 

@@ -82,6 +82,8 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
     live_encoder_gradient: bool
     #: Denormals flushed to zero in ``train`` (models saved without the attribute load with it)
     flush_denormal: bool = True
+    #: The snapshots' critic updates so far (logged as ``pevfa/n_history_updates``)
+    _n_history_updates: int = 0
     snapshot_freq: int
     history_max_policies: int
     history_train_freq: int
@@ -229,7 +231,8 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
             live, target = (getattr(self, name) for name in self.critic_norm_stats)
             polyak_update(live, target, 1.0)  # the targets' BatchNorm statistics, as SB3 copies them at each update
             self.logger.record("pevfa/history_value_loss", float(np.mean(losses)))
-        self.logger.record("pevfa/history_updates", len(losses))
+        self._n_history_updates += len(losses)
+        self.logger.record("pevfa/n_history_updates", self._n_history_updates)  # so far, as SB3's train/n_updates
         self.logger.record("pevfa/n_policies", self.history.n_policies)
 
     def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
