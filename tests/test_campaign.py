@@ -520,6 +520,26 @@ def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_comp
     ]
 
 
+def test_the_baselines_curves_in_two_protocols(tmp_path):
+    """Curves are the runs' mean (± half a std) over their common length, per env step and per CPU minute; the figure
+    of the baseline in two protocols has a column per task both ran."""
+
+    def run(means: list[float], cpu: list[float]) -> dict:
+        return {"curve": {"steps": [1000, 2000, 3000][: len(means)], "mean": means, "cpu_s": cpu}}
+
+    curve = figures.mean_curve([run([1.0, 3.0, 5.0], [60.0, 120.0, 180.0]), run([3.0, 5.0], [120.0, 240.0])])
+    np.testing.assert_allclose(curve["steps"], [1000, 2000])
+    np.testing.assert_allclose(curve["cpu_minutes"], [1.5, 3.0])
+    np.testing.assert_allclose(curve["mean"], [2.0, 4.0])
+    np.testing.assert_allclose(curve["half_std"], [0.5, 0.5])
+    mine = {"A": {"ppo": [run([1.0, 2.0], [1.0, 2.0])]}, "B": {"ppo": [run([1.0], [1.0])]}}
+    theirs = {"A": {"ppo": [run([2.0, 3.0], [1.0, 2.0])]}}
+    figures.plot_beside(mine, theirs, "ppo", ("this", "that"), tmp_path / "beside.png")
+    assert (tmp_path / "beside.png").stat().st_size > 10_000
+    figures.plot_beside(mine, {"C": theirs["A"]}, "ppo", ("this", "that"), tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()  # no task that both ran: no figure
+
+
 def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 2)
     series = training.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]

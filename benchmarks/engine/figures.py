@@ -1,5 +1,5 @@
 """The report's figures: learning curves per env step and per CPU-second with the performance profile (one PNG, a
-column per task), and the local-generalization diagnostic over training."""
+column per task), the local-generalization diagnostic over training, and the baseline's curves in two protocols."""
 
 import pathlib
 import warnings
@@ -8,7 +8,7 @@ import numpy as np
 
 from . import aggregate
 from .results import Runs
-from .tables import compared_variants, diagnosed
+from .tables import compared_variants, diagnosed, table1_order
 
 
 def local_generalization_curves(series: list[dict[str, list[float]]], window: int = 25) -> dict[str, np.ndarray]:
@@ -54,6 +54,60 @@ def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:
     plt.close(figure)
 
 
+def mean_curve(variant_runs: list[dict]) -> dict[str, np.ndarray]:
+    """The runs' evaluations over their common length: env steps, mean training CPU minutes, the mean return and half
+    its std over the runs."""
+    n = min(len(r["curve"]["mean"]) for r in variant_runs)
+    means = np.array([r["curve"]["mean"][:n] for r in variant_runs])
+    return {
+        "steps": np.array(variant_runs[0]["curve"]["steps"][:n], float),
+        "cpu_minutes": np.mean([r["curve"]["cpu_s"][:n] for r in variant_runs], axis=0) / 60,
+        "mean": means.mean(0),
+        "half_std": means.std(0) / 2,
+    }
+
+
+def draw_curves(axes, variant_runs: list[dict], color: str, label: str) -> None:
+    """The runs' mean curve (± half a std) per env step on ``axes[0]``, per training CPU minute on ``axes[1]``."""
+    curve = mean_curve(variant_runs)
+    for ax, x in zip(axes, (curve["steps"] / 1e6, curve["cpu_minutes"])):
+        ax.plot(x, curve["mean"], color=color, label=f"{label} ({len(variant_runs)})")
+        ax.fill_between(x, curve["mean"] - curve["half_std"], curve["mean"] + curve["half_std"], color=color, alpha=0.2)
+
+
+def label_columns(axes, column: int, task: str) -> None:
+    """A task's column of curves: its title, the axes' names, the legend."""
+    axes[0][column].set_title(task, fontsize=9)
+    axes[0][column].set_xlabel("env steps (M)")
+    axes[1][column].set_xlabel("training CPU minutes")
+    axes[0][column].legend(fontsize=7)
+    if column == 0:
+        axes[0][0].set_ylabel("evaluation return (mean ± half std)")
+        axes[1][0].set_ylabel("evaluation return (mean ± half std)")
+
+
+def plot_beside(runs: Runs, other: Runs, baseline: str, labels: tuple[str, str], png: pathlib.Path) -> None:
+    """The baseline's curves in two protocols' runs (``labels``), per env step and per CPU minute, a column per task
+    that both ran."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = [t for t in table1_order(runs, other) if runs.get(t, {}).get(baseline) and other.get(t, {}).get(baseline)]
+    if not tasks:
+        return
+    figure, axes = plt.subplots(2, len(tasks), figsize=(3.4 * len(tasks), 6.0), squeeze=False)
+    for column, task in enumerate(tasks):
+        for color, label, some in (("C0", labels[0], runs), ("C1", labels[1], other)):
+            draw_curves((axes[0][column], axes[1][column]), some[task][baseline], color, f"{baseline}, {label}")
+        label_columns(axes, column, task)
+    figure.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png, dpi=80)
+    plt.close(figure)
+
+
 def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -> None:
     import matplotlib
 
@@ -69,20 +123,8 @@ def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -
             if variant not in compared:
                 continue
             color = colors.setdefault(variant, f"C{len(colors)}")
-            n = min(len(r["curve"]["mean"]) for r in variant_runs)
-            means = np.array([r["curve"]["mean"][:n] for r in variant_runs])
-            steps = np.array(variant_runs[0]["curve"]["steps"][:n])
-            cpu = np.mean([r["curve"]["cpu_s"][:n] for r in variant_runs], axis=0) / 60
-            for row, x in enumerate((steps / 1e6, cpu)):
-                ax = axes[row][column]
-                ax.plot(x, means.mean(0), color=color, label=f"{variant} ({len(variant_runs)})")
-                ax.fill_between(x, means.mean(0) - means.std(0) / 2, means.mean(0) + means.std(0) / 2, color=color, alpha=0.2)
-        axes[0][column].set_title(task, fontsize=9)
-        axes[0][column].set_xlabel("env steps (M)")
-        axes[1][column].set_xlabel("training CPU minutes")
-        axes[0][column].legend(fontsize=7)
-    axes[0][0].set_ylabel("evaluation return (mean ± half std)")
-    axes[1][0].set_ylabel("evaluation return (mean ± half std)")
+            draw_curves((axes[0][column], axes[1][column]), variant_runs, color, variant)
+        label_columns(axes, column, task)
     taus = np.linspace(0, 2.5, 101)
     ax = axes[0][-1]
     for variant, scores in normalized.items():

@@ -7,7 +7,7 @@ import numpy as np
 
 from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
 
-from .figures import plot, plot_local_generalization
+from .figures import plot, plot_beside, plot_local_generalization
 from .results import collect, expected_duration
 from .tables import (
     ORDER,
@@ -84,8 +84,10 @@ def report(
         steps = min(c.timesteps for c in (*campaigns, *others))
         sections += [[f"{baseline} in both protocols: its best evaluation within {steps:,} env steps (the shorter "
                       "protocol's budget) and over its whole run, mean ± half std over seeds (runs), and its CPU "
-                      "minutes per run:"],
+                      "minutes per run (its curves in both: beside.png):"],
                      baseline_beside(runs, other, baseline, labels, steps)]  # fmt: skip
+        if png is not None:
+            plot_beside(runs, other, baseline, labels, png.with_name("beside.png"))  # type: ignore[arg-type]
     spec = TARGETS.get(next(iter(protocols))) if len(protocols) == 1 else None
     lines_of_target = []
     if spec is not None:
