@@ -1,6 +1,7 @@
 """The local-generalization diagnostic of the off-policy PeVFAs (a conventional twin critic beside the run)."""
 
 import copy
+import warnings
 
 import numpy as np
 import pytest
@@ -214,3 +215,18 @@ def test_it_needs_an_off_policy_pevfa():
         SAC("MlpPolicy", "Pendulum-v1", **tiny()).learn(10, callback=QLocalGeneralizationCallback())
     with pytest.raises(ValueError, match="tail_weight"):
         QLocalGeneralizationCallback(tail_weight=1.0)
+
+
+def test_windows_without_a_scored_transition_are_said_once():
+    """Pendulum's episodes end at a time limit of 200 steps: at gamma 0.99 a return misses more than 1 % of its value
+    unless 459 steps follow it, so no transition is ever scored; the callback says so once, and the errors are NaN."""
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=100, **tiny())
+    callback = QLocalGeneralizationCallback()
+    with pytest.warns(UserWarning, match=r"No transition of a window .* went on 459 steps after it") as caught:
+        model.learn(600, callback=callback)
+    assert sum("No transition of a window" in str(w.message) for w in caught) == 1
+    assert callback.results and all(r["n_states"] == 0 and np.isnan(r["pevfa_before"]) for r in callback.results)
+    scored = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=100, gamma=0.9, **tiny())  # 44 steps suffice
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        scored.learn(600, callback=QLocalGeneralizationCallback())

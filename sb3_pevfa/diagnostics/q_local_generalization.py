@@ -71,6 +71,7 @@ class QLocalGeneralizationCallback(BaseCallback):
         self.tail_weight = tail_weight
         self._window: dict | None = None
         self._closed: dict | None = None
+        self._warned_unscored = False
         #: One entry per scored window: the four errors, ``timesteps`` (the window's end), ``n_states`` and
         #: ``policy_id`` (its snapshot's)
         self.results: list[dict[str, float]] = []
@@ -239,6 +240,16 @@ class QLocalGeneralizationCallback(BaseCallback):
         scored = (missing <= self.tail_weight)[: closed["n_rows"]].reshape(-1)
         target = returns[: closed["n_rows"]].reshape(-1)[scored]
         errors = {key: float(np.mean((closed[key][scored] - target) ** 2)) if scored.any() else np.nan for key in ERROR_KEYS}
+        if not scored.any() and not self._warned_unscored:
+            self._warned_unscored = True
+            steps = int(np.ceil(np.log(self.tail_weight) / np.log(model.gamma))) if self.tail_weight > 0 else "all"
+            warnings.warn(
+                f"No transition of a window ({closed['n_rows']} rows) is scored: none has a return that misses at most "
+                f"tail_weight={self.tail_weight} of its discounted value (its episode terminated, or went on {steps} "
+                "steps after it). Episodes that end at a shorter time limit are never scored: use an env whose episodes "
+                "terminate, a longer time limit, a lower gamma or a larger tail_weight",
+                stacklevel=2,
+            )
         self.results.append({**errors, "timesteps": closed["timesteps"], "n_states": int(scored.sum()),
                              "policy_id": closed["policy_id"]})  # fmt: skip
         for key, value in self.results[-1].items():
