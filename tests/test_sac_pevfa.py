@@ -241,6 +241,20 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
     assert np.isfinite(loss) and any(not th.equal(v, model.policy.critic.state_dict()[k]) for k, v in before.items())
 
 
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_steps(pevfa_class):
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
+    sizes, policies = [], []
+    sample, records = model.replay_buffer.sample, model.history.records
+    model.replay_buffer.sample = lambda n, env=None: sizes.append(n) or sample(n, env)  # type: ignore[method-assign]
+    model.history.records = lambda ids, **kw: policies.append(len(ids)) or records(ids, **kw)  # type: ignore[method-assign]
+    model.learn(300)  # 200 gradient steps: SB3's 200 batches of 32, then 50 snapshot updates
+    # one snapshot so far (a snapshot per 1000 gradient steps): each update draws it with its 512 / 8 transitions
+    assert sizes.count(32) == 200 and sizes.count(64) == 50 and len(sizes) == 250
+    assert model.history.n_policies == 1 and policies == [1] * 50
+    assert (model.history_batch_size, model.history_batch_policies, model.snapshot_freq) == (512, 8, 1000)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
