@@ -243,16 +243,18 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
 def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_steps(pevfa_class):
-    model = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", **{**tiny(), "batch_size": 48})
+    assert (model.history_batch_size, model.history_batch_policies, model.snapshot_freq) == (512, 8, 1000)
+    model.snapshot_freq = 10  # 20 snapshots in the 200 gradient steps below, so that updates draw 8 of them
     sizes, policies = [], []
     sample, records = model.replay_buffer.sample, model.history.records
     model.replay_buffer.sample = lambda n, env=None: sizes.append(n) or sample(n, env)  # type: ignore[method-assign]
     model.history.records = lambda ids, **kw: policies.append(len(ids)) or records(ids, **kw)  # type: ignore[method-assign]
-    model.learn(300)  # 200 gradient steps: SB3's 200 batches of 32, then 50 snapshot updates
-    # one snapshot so far (a snapshot per 1000 gradient steps): each update draws it with its 512 / 8 transitions
-    assert sizes.count(32) == 200 and sizes.count(64) == 50 and len(sizes) == 250
-    assert model.history.n_policies == 1 and policies == [1] * 50
-    assert (model.history_batch_size, model.history_batch_policies, model.snapshot_freq) == (512, 8, 1000)
+    model.learn(300)  # 200 gradient steps: SB3's 200 batches of 48 and 50 snapshot updates
+    assert sizes.count(48) == 200 and len(sizes) == 250 and len(policies) == 50
+    # until 8 snapshots exist an update draws them all, 512 / 8 transitions each; then 8 of them, 512 in all
+    drawn = [n * 64 for n in policies]
+    assert [size for size in sizes if size != 48] == drawn and drawn[-30:] == [512] * 30 and policies[0] == 1
 
 
 @pytest.mark.parametrize(

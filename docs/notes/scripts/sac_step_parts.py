@@ -4,11 +4,13 @@ Both models learn ``--warmup`` env steps first (SACPeVFA with a snapshot every 5
 updates draw 8 distinct snapshots); then each part is timed over ``--steps`` calls after 10 untimed ones: SB3's
 ``train`` of one gradient step for SAC and for SACPeVFA (its critics reading chi of the live actor, without the
 snapshots' update), and one snapshots' update (``OffPolicyPeVFA._train_on_snapshots``) split into its stages.
-``--sizes`` times whole snapshots' updates of other sizes instead of the stages: ``BATCH/POLICIES`` each.
+``--sizes`` times whole snapshots' updates of other sizes instead of the stages: ``BATCH/POLICIES`` each (fewer
+snapshots where fewer exist; the table names what was drawn). The process's denormal setting applies throughout
+(``--flush-denormals``: as ``train`` runs by default).
 
     python docs/notes/scripts/sac_step_parts.py --env Hopper-v5
     python docs/notes/scripts/sac_step_parts.py --env Hopper-v5 --flush-denormals   # for the whole process
-    python docs/notes/scripts/sac_step_parts.py --flush-denormals --sizes 64/8 128/4 256/4 256/8 512/8 1024/8
+    python docs/notes/scripts/sac_step_parts.py --flush-denormals --sizes 64/8 128/4 256/4 256/8 512/8 1024/8 256/16
 """
 
 import argparse
@@ -88,6 +90,9 @@ def main() -> None:
     parser.add_argument("--flush-denormals", action="store_true", help="torch.set_flush_denormal(True) from the start")
     parser.add_argument("--sizes", nargs="*", default=[], help="BATCH/POLICIES of whole snapshots' updates to time")
     args = parser.parse_args()
+    sizes = [tuple(int(n) for n in size.split("/")) for size in args.sizes]
+    if any(batch % policies for batch, policies in sizes):
+        parser.error(f"--sizes {args.sizes}: each BATCH must be a multiple of its POLICIES")
     th.set_num_threads(1)
     th.set_flush_denormal(args.flush_denormals)
     sac = SAC("MlpPolicy", args.env, learning_starts=500, seed=0).learn(args.warmup)
@@ -99,11 +104,12 @@ def main() -> None:
     print(f"| SB3 SAC: one gradient step | {ms_per_call(lambda: sac.train(1, sac.batch_size), args.steps):.2f} |")
     step = ms_per_call(lambda: SAC.train(pevfa, 1, pevfa.batch_size), args.steps)
     print(f"| SACPeVFA: SB3's gradient step (critics on the live actor's chi) | {step:.2f} |")
-    for size in args.sizes:
-        pevfa.history_batch_size, pevfa.history_batch_policies = (int(n) for n in size.split("/"))
+    for batch, policies in sizes:
+        pevfa.history_batch_size, pevfa.history_batch_policies = batch, policies
+        drawn = min(policies, pevfa.history.n_policies)  # all snapshots where fewer exist, batch / policies each
         ms = ms_per_call(pevfa._train_on_snapshots, args.steps)
-        print(f"| SACPeVFA: snapshots' update of {size.replace('/', ' transitions, ')} snapshots | {ms:.2f} |")
-    if not args.sizes:
+        print(f"| SACPeVFA: snapshots' update of {batch // policies * drawn} transitions, {drawn} snapshots | {ms:.2f} |")
+    if not sizes:
         for name, ms in snapshot_update_stages(pevfa, args.steps).items():
             print(f"| SACPeVFA: snapshots' update, {name} | {ms:.2f} |")
 
