@@ -42,8 +42,9 @@ def main() -> None:
     model.save(args.out / "model")
     model.save_replay_buffer(args.out / "replay_buffer")  # the snapshots beside it: replay_buffer.snapshots.npz
 
-    model = algorithm.load(args.out / "model", env=model.get_env(), restore_rng_state=True)
-    model.load_replay_buffer(args.out / "replay_buffer")  # and the snapshots: learning goes on as if never stopped
+    # the same env without a reset, the RNG states, the buffer and the snapshots: learning goes on as if never stopped
+    model = algorithm.load(args.out / "model", env=model.get_env(), force_reset=False, restore_rng_state=True)
+    model.load_replay_buffer(args.out / "replay_buffer")
     model.learn(timesteps, reset_num_timesteps=False)
     mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=3 if args.tiny else 10)
     print(f"{args.env}, {args.algo}: {model.num_timesteps} steps, {model.history.n_policies} snapshots, "

@@ -683,3 +683,27 @@ def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
     assert series["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0]  # a window per snapshot (300 gradient steps from the 201st step)
     assert series["timesteps"][-1] == 1500.0 and min(series["n_states"]) > 0
     assert all(min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after"))
+
+
+def test_a_diagnostic_trial_never_goes_on_from_a_checkpoint(tmp_path, monkeypatch):
+    """The diagnostic's conventional critic and its series live in the process (a resumed run would be left out of
+    the diagnostic): an interrupted diagnostic run saves no checkpoint and starts over, whatever the folder holds."""
+    small = dict(learning_starts=200, batch_size=32, snapshot_freq=300, policy_kwargs=dict(net_arch=[32, 32]))
+    monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
+    tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1000, 500, 1)
+    evaluate = training.evaluate_policy
+
+    def stopped_at_1000(model, *args, **kwargs):
+        if model.num_timesteps == 1000 and not (tmp_path / "stopped").exists():
+            (tmp_path / "stopped").touch()
+            raise KeyboardInterrupt
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(training, "evaluate_policy", stopped_at_1000)
+    folder = tmp_path / "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=500)
+    assert not folder.exists()
+    result = training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=500)
+    assert result["resumed_from"] == 0 and result["curve"]["steps"] == [500, 1000]
+    assert result["local_generalization"]["policy_id"][0] == 0.0  # the series from the run's first snapshot

@@ -388,3 +388,43 @@ def test_a_replay_buffer_whose_snapshots_do_not_load_leaves_the_model_as_it_was(
     with pytest.raises(ValueError, match=r"buffer\.snapshots\.npz"):
         other.load_replay_buffer(tmp_path / "buffer")
     assert other.replay_buffer is buffer and other.history.policy_ids == ids
+
+
+def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment(tmp_path):
+    """rl-zoo3's ``-i`` on a checkpoint asks for the run's final ``replay_buffer.pkl``: the buffer and snapshots that
+    SB3's CheckpointCallback(save_replay_buffer=True) saved at the checkpoint's step are loaded instead; without them,
+    the final snapshots load with a warning that they come from after the model."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=20, **tiny())
+    callback = CheckpointCallback(save_freq=150, save_path=str(tmp_path), name_prefix="rl_model", save_replay_buffer=True)
+    model.learn(300, callback=callback)
+    model.save_replay_buffer(tmp_path / "replay_buffer.pkl")  # the final one, as --save-replay-buffer writes it
+    assert (tmp_path / "rl_model_replay_buffer_150_steps.snapshots.npz").exists()
+    at_150 = [i for i in model.history.policy_ids if model.history.record_info(i)["num_timesteps"] <= 150]
+    assert 1 < len(at_150) < len(model.history.policy_ids)
+    checkpoint = SACPeVFA.load(tmp_path / "rl_model_150_steps.zip")
+    checkpoint.load_replay_buffer(tmp_path / "replay_buffer")  # what rl-zoo3's -i does
+    # SB3 calls the callback before it stores the step's transition: 149 of them at the checkpoint
+    assert checkpoint.replay_buffer.size() == 149 and checkpoint.history.policy_ids == at_150
+    (tmp_path / "rl_model_replay_buffer_150_steps.pkl").unlink()  # rl-zoo3's --save-freq saves no buffer
+    with pytest.warns(UserWarning, match="recorded up to 300 steps, this model is at 150"):
+        checkpoint.load_replay_buffer(tmp_path / "replay_buffer")
+    assert checkpoint.replay_buffer.size() == 300 and checkpoint.history.policy_ids == model.history.policy_ids
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_the_documented_resume_equals_one_uninterrupted_learn(tmp_path, pevfa_class):
+    """docs/off-policy.md's resume: loaded onto the same env without a reset (``force_reset=False``), with the RNG
+    states, the replay buffer and the snapshots, learning goes on as one ``learn`` call would have."""
+    kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4, **tiny())
+    reference = pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs).learn(300)
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs).learn(200)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    model = pevfa_class.load(tmp_path / "model", env=model.get_env(), force_reset=False, restore_rng_state=True)
+    model.load_replay_buffer(tmp_path / "buffer")
+    model.learn(100, reset_num_timesteps=False)
+    assert model.history.policy_ids == reference.history.policy_ids
+    for got, want in zip(model.policy.state_dict().values(), reference.policy.state_dict().values()):
+        assert th.equal(got, want)

@@ -177,13 +177,16 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
           checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ) -> dict[str, Any]:  # fmt: skip
     """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
     goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
-    env steps; the folder is removed when the run is complete."""
+    env steps; the folder is removed when the run is complete. Runs with a diagnostic (``LOCAL_GENERALIZATION``)
+    neither save nor load checkpoints: an interrupted one starts over."""
     if campaign.protocol == "zoo":
         return train_through_the_zoo(campaign, task, variant, seed, trial)
     th.set_num_threads(1)
     make_env = ENV_MAKERS.get(campaign.protocol, functools.partial(make_vec_env, n_envs=1))
     env = make_env(task, seed=seed)
     eval_env = make_env(task, seed=seed + EVAL_SEED_OFFSET)
+    if variant in LOCAL_GENERALIZATION:  # its diagnostic's critic and series live in the process: never resumed (a
+        checkpoint = None  # report would leave the run out of the diagnostic), an interrupted run starts over
     with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)

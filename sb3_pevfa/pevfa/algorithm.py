@@ -44,7 +44,7 @@ from sb3_pevfa.pevfa.arguments import (
     with_saved_critic,
 )
 from sb3_pevfa.pevfa.buffers import PeVFADictRolloutBuffer, PeVFARolloutBuffer, ValueTargetLambdaMixin
-from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, history_of_the_moment
+from sb3_pevfa.pevfa.checkpoints import checkpoint_history, enable_history_checkpoints, path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
@@ -534,14 +534,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         A history with records from after this model's ``num_timesteps`` (e.g. a run's final history beside one of
         its checkpoints) is loaded with a warning."""
         self.history.load(path)
-        latest = max((self.history.record_info(i).get("num_timesteps", 0) for i in self.history.policy_ids), default=0)
-        if latest > self.num_timesteps:
-            warnings.warn(
-                f"The history {path} holds policies recorded up to {latest} steps, this model is at "
-                f"{self.num_timesteps}: it is not the history of this model's moment (for a checkpoint, load the "
-                "history saved with it: <prefix>_replay_buffer_<steps>_steps.pkl)",
-                stacklevel=2,
-            )
+        warn_if_newer(self.history, self.num_timesteps, path)
 
     @property
     def replay_buffer(self) -> PolicyHistory:
@@ -560,13 +553,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
 
         :param truncate_last_traj: Ignored (a HER replay buffer option of SB3)
         """
-        if isinstance(path, (str, pathlib.Path)):
-            moment = history_of_the_moment(pathlib.Path(path).parent, self.num_timesteps)
-            if moment is not None and moment != pathlib.Path(path):
-                if self.verbose:
-                    print(f"Loading the history saved with the checkpoint at {self.num_timesteps} steps: {moment}")
-                path = moment
-        self.load_history(path)
+        self.load_history(path_of_the_moment(path, self.num_timesteps, self.verbose))
 
     @classmethod
     def load(  # type: ignore[override]

@@ -7,6 +7,8 @@ checkpoint finds that history again: :func:`enable_history_checkpoints`, :func:`
 
 import pathlib
 import re
+import warnings
+from typing import Any
 
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.type_aliases import MaybeCallback
@@ -48,3 +50,32 @@ def history_of_the_moment(directory: pathlib.Path, num_timesteps: int) -> pathli
     """A checkpoint history in ``directory`` saved at ``num_timesteps`` (the moment of a model loaded from it)."""
     matches = sorted(directory.glob(f"*_replay_buffer_{num_timesteps}_steps.pkl"))
     return matches[0] if matches else None
+
+
+def path_of_the_moment(path: Any, num_timesteps: int, verbose: int = 0, what: str = "the history") -> Any:
+    """What to load for a model at ``num_timesteps`` that asks for ``path`` (rl-zoo3's ``-i`` asks for the run's final
+    ``replay_buffer.pkl`` also for a checkpoint): the history or replay buffer saved beside it at ``num_timesteps``
+    by SB3's ``CheckpointCallback``, where there is one, else ``path``."""
+    if not isinstance(path, (str, pathlib.Path)):
+        return path
+    asked = pathlib.Path(path)
+    asked = asked if asked.suffix == ".pkl" else asked.with_name(asked.name + ".pkl")  # SB3 adds .pkl where missing
+    moment = history_of_the_moment(asked.parent, num_timesteps)
+    if moment is None or moment == asked:
+        return path
+    if verbose:
+        print(f"Loading {what} saved with the checkpoint at {num_timesteps} steps: {moment}")
+    return moment
+
+
+def warn_if_newer(history: Any, num_timesteps: int, path: Any) -> None:
+    """Warn where ``history`` holds policies recorded after ``num_timesteps`` (e.g. a run's final history loaded
+    beside one of its checkpoints)."""
+    latest = max((history.record_info(i).get("num_timesteps", 0) for i in history.policy_ids), default=0)
+    if latest > num_timesteps:
+        warnings.warn(
+            f"The history {path} holds policies recorded up to {latest} steps, this model is at {num_timesteps}: it "
+            "is not the history of this model's moment (for a checkpoint, load the history saved with it: "
+            "<prefix>_replay_buffer_<steps>_steps.pkl)",
+            stacklevel=3,
+        )

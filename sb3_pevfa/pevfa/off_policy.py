@@ -21,6 +21,7 @@ from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_pevfa.common.model_file import ModelFile
+from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
@@ -303,7 +304,10 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """SB3's, and the snapshots saved beside it by :meth:`save_replay_buffer`, where they are (rl-zoo3's ``-i``).
-        Where either fails, the model keeps its own."""
+        Where either fails, the model keeps its own. rl-zoo3 asks for the run's final ``replay_buffer.pkl`` also for a
+        checkpoint: a replay buffer saved beside it at this model's ``num_timesteps`` (SB3's ``CheckpointCallback``
+        with ``save_replay_buffer=True``) is loaded instead; snapshots from after it load with a warning."""
+        path = path_of_the_moment(path, self.num_timesteps, self.verbose, "the replay buffer and snapshots")
         previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
@@ -315,8 +319,9 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Load snapshots saved by :meth:`save_history`; the live actor's code and states become the latest
-        snapshot's."""
+        snapshot's. Snapshots recorded after this model's ``num_timesteps`` load with a warning."""
         self.history.load(path)
+        warn_if_newer(self.history, self.num_timesteps, path)
         latest = self.history.latest_policy_id
         if latest is not None:
             record = self.history.records([latest], fields=("codes", "states"))
