@@ -650,19 +650,29 @@ def test_the_local_generalization_diagnostic_in_the_authors_protocol_scores_ever
     assert all(np.isfinite(series[key]).all() for key in ("pevfa_before", "pevfa_after", "vfa_before", "vfa_after"))
 
 
-def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_and_snapshots(tmp_path, monkeypatch):
-    small = dict(learning_starts=900, batch_size=32, policy_kwargs=dict(net_arch=[32, 32]))  # a tiny SAC
+def use_a_tiny_sac(monkeypatch: pytest.MonkeyPatch, **options: int) -> None:
+    """Protocol ``sac`` trains a tiny SAC / SACPeVFA (32x32, batches of 32) with ``options``."""
+    small = dict(batch_size=32, policy_kwargs=dict(net_arch=[32, 32]), **options)
     monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
-    tiny = definitions.Campaign("sac", (TASK,), ("opr",), (0,), 2000, 500, 2)
+
+
+def stop_once_at(monkeypatch: pytest.MonkeyPatch, steps: int, marker: pathlib.Path) -> None:
+    """The worker ends (KeyboardInterrupt) at the evaluation of ``steps``, once (``marker`` remembers it)."""
     evaluate = training.evaluate_policy
 
-    def stopped_at_1500(model, *args, **kwargs):
-        if model.num_timesteps == 1500 and not (tmp_path / "stopped").exists():
-            (tmp_path / "stopped").touch()
+    def stopped(model, *args, **kwargs):
+        if model.num_timesteps == steps and not marker.exists():
+            marker.touch()
             raise KeyboardInterrupt
         return evaluate(model, *args, **kwargs)
 
-    monkeypatch.setattr(training, "evaluate_policy", stopped_at_1500)
+    monkeypatch.setattr(training, "evaluate_policy", stopped)
+
+
+def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_and_snapshots(tmp_path, monkeypatch):
+    use_a_tiny_sac(monkeypatch, learning_starts=900)
+    tiny = definitions.Campaign("sac", (TASK,), ("opr",), (0,), 2000, 500, 2)
+    stop_once_at(monkeypatch, 1500, tmp_path / "stopped")
     folder = tmp_path / "checkpoint"
     with pytest.raises(KeyboardInterrupt):
         training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
@@ -676,8 +686,7 @@ def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_
 
 
 def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
-    small = dict(learning_starts=200, batch_size=32, snapshot_freq=300, policy_kwargs=dict(net_arch=[32, 32]))
-    monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
+    use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 2)
     series = training.train(tiny, TASK, "opr+local-generalization", 0)["local_generalization"]
     assert series["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0]  # a window per snapshot (300 gradient steps from the 201st step)
@@ -688,18 +697,9 @@ def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
 def test_a_diagnostic_trial_never_goes_on_from_a_checkpoint(tmp_path, monkeypatch):
     """The diagnostic's conventional critic and its series live in the process (a resumed run would be left out of
     the diagnostic): an interrupted diagnostic run saves no checkpoint and starts over, whatever the folder holds."""
-    small = dict(learning_starts=200, batch_size=32, snapshot_freq=300, policy_kwargs=dict(net_arch=[32, 32]))
-    monkeypatch.setitem(definitions.OFF_POLICY, "sac", (*definitions.OFF_POLICY["sac"][:2], small))
+    use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1000, 500, 1)
-    evaluate = training.evaluate_policy
-
-    def stopped_at_1000(model, *args, **kwargs):
-        if model.num_timesteps == 1000 and not (tmp_path / "stopped").exists():
-            (tmp_path / "stopped").touch()
-            raise KeyboardInterrupt
-        return evaluate(model, *args, **kwargs)
-
-    monkeypatch.setattr(training, "evaluate_policy", stopped_at_1000)
+    stop_once_at(monkeypatch, 1000, tmp_path / "stopped")
     folder = tmp_path / "checkpoint"
     with pytest.raises(KeyboardInterrupt):
         training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=500)
