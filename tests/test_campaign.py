@@ -173,7 +173,7 @@ def test_a_killed_workers_trial_is_retried_exactly_once(tmp_path):
     assert complete == [0, 1]  # every grid point once
 
 
-def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tmp_path):
+def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tmp_path, capsys):
     tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3, 4), 4000, 2000, 2)
     study, _ = storage.open_study("recover", storage.storage_of("recover", str(tmp_path / "r.journal")), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
@@ -194,6 +194,10 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     assert [storage.grid_point(t) for t in waiting] == [(TASK, "ppo", 0), (TASK, "ppo", 3)]
     assert waiting[0].system_attrs["retry_history"] == [0] and waiting[1].system_attrs["retry_history"] == [6, 7, 8, 9, 10]
     assert storage.pending(study, tiny) == 3  # seeds 0 and 3 again and seed 4, never started; not seeds 1 and 2
+    results.status_of("recover", str(tmp_path / "r.journal"))
+    shown = capsys.readouterr().out  # why each failed trial stopped
+    assert "seed 0: #0:FAIL (interrupted: stopped) #11:WAITING\n" in shown and "seed 1: #1:FAIL (raised)\n" in shown
+    assert "seed 2: #2:FAIL (interrupted: worker gone) #3:FAIL (interrupted: worker gone)" in shown
     notes = results.collect(["recover"], str(tmp_path / "r.journal"))[2]
     assert notes == [
         f"{TASK} ppo seed 1: trial 1 failed (its training raised)",
