@@ -198,6 +198,10 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     shown = capsys.readouterr().out  # why each failed trial stopped
     assert "seed 0: #0:FAIL (interrupted: stopped) #11:WAITING\n" in shown and "seed 1: #1:FAIL (raised)\n" in shown
     assert "seed 2: #2:FAIL (interrupted: worker gone) #3:FAIL (interrupted: worker gone)" in shown
+    # a dead worker's trial that Optuna's heartbeat failed and retried (RDBStorage) carries no attribute of ours
+    failed = optuna.create_trial(state=TrialState.FAIL)
+    assert results.trial_outcome(failed) == " (raised)"
+    assert results.trial_outcome(failed, retried=True) == " (interrupted: worker gone, retried)"
     notes = results.collect(["recover"], str(tmp_path / "r.journal"))[2]
     assert notes == [
         f"{TASK} ppo seed 1: trial 1 failed (its training raised)",

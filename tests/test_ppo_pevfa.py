@@ -1069,6 +1069,11 @@ def test_checkpoints_save_and_load_the_history_of_their_moment(tmp_path):
     assert checkpoint.num_timesteps == 128 and checkpoint.history.policy_ids == at_128
     checkpoint.load_replay_buffer(tmp_path / "replay_buffer.pkl")  # what rl-zoo3's -i does
     assert checkpoint.history.policy_ids == at_128
+    checkpoint.load_replay_buffer(tmp_path / "rl_model_replay_buffer_128_steps")  # SB3's name without its .pkl
+    assert checkpoint.history.policy_ids == at_128
+    final = PPOPeVFA.load(tmp_path / "rl_model_256_steps.zip")  # the last checkpoint, at the run's end
+    final.load_replay_buffer(tmp_path / "replay_buffer.pkl")  # the run's own history, not the checkpoint's
+    assert final.history.policy_ids == model.history.policy_ids
     with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128"):
         checkpoint.load_history(tmp_path / "replay_buffer.pkl")
     assert checkpoint.history.policy_ids == model.history.policy_ids

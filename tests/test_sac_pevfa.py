@@ -407,6 +407,10 @@ def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment
     checkpoint.load_replay_buffer(tmp_path / "replay_buffer")  # what rl-zoo3's -i does
     # SB3 calls the callback before it stores the step's transition: 149 of them at the checkpoint
     assert checkpoint.replay_buffer.size() == 149 and checkpoint.history.policy_ids == at_150
+    fresh = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=20, **tiny())
+    fresh.num_timesteps = 300  # the final model, whose step is also a checkpoint's: its own buffer, not the checkpoint's
+    fresh.load_replay_buffer(tmp_path / "replay_buffer")
+    assert fresh.replay_buffer.size() == 300 and fresh.history.policy_ids == model.history.policy_ids
     (tmp_path / "rl_model_replay_buffer_150_steps.pkl").unlink()  # rl-zoo3's --save-freq saves no buffer
     with pytest.warns(UserWarning, match="recorded up to 300 steps, this model is at 150"):
         checkpoint.load_replay_buffer(tmp_path / "replay_buffer")

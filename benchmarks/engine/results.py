@@ -123,16 +123,19 @@ def status_of(name: str, storage: str | None) -> None:
     for trial in study.get_trials(deepcopy=False):
         counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
     print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
+    retried = {t.system_attrs.get("failed_trial") for t in study.get_trials(deepcopy=False)}
     for (task, variant, seed), trials in grid_states(study, campaign).items():
-        states = " ".join(f"#{t.number}:{t.state.name}{trial_outcome(t)}" for t in trials)
+        states = " ".join(f"#{t.number}:{t.state.name}{trial_outcome(t, t.number in retried)}" for t in trials)
         print(f"  {task:28s} {variant:26s} seed {seed}: {states or '-'}")
 
 
-def trial_outcome(trial: Any) -> str:
+def trial_outcome(trial: Any, retried: bool = False) -> str:
     """What the status adds to a trial's state: its max average return, or why a failed one stopped (an interruption:
-    the worker was stopped or died, and the grid point is tried again; else its training raised)."""
+    the worker was stopped or died, and the grid point is tried again; a failed trial that Optuna's heartbeat retried
+    (``retried``); else its training raised)."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
-    if trial.state == TrialState.FAIL:
-        return f" (interrupted: {trial.user_attrs['interrupted']})" if trial.user_attrs.get("interrupted") else " (raised)"
-    return ""
+    if trial.state != TrialState.FAIL:
+        return ""
+    reason = trial.user_attrs.get("interrupted") or ("worker gone, retried" if retried else "")
+    return f" (interrupted: {reason})" if reason else " (raised)"

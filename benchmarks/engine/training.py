@@ -186,7 +186,9 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     env = make_env(task, seed=seed)
     eval_env = make_env(task, seed=seed + EVAL_SEED_OFFSET)
     if variant in LOCAL_GENERALIZATION:  # its diagnostic's critic and series live in the process: never resumed (a
-        checkpoint = None  # report would leave the run out of the diagnostic), an interrupted run starts over
+        if checkpoint is not None:  # report would leave the run out of the diagnostic), an interrupted run starts over
+            shutil.rmtree(checkpoint, ignore_errors=True)  # (one saved by an earlier version goes too)
+        checkpoint = None
     with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)

@@ -5,11 +5,14 @@ SB3's ``CheckpointCallback`` gives a replay buffer (``<prefix>_replay_buffer_<st
 checkpoint finds that history again: :func:`enable_history_checkpoints`, :func:`checkpoint_history`.
 """
 
+import json
 import pathlib
 import re
 import warnings
+import zipfile
 from typing import Any
 
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.type_aliases import MaybeCallback
 
@@ -52,20 +55,40 @@ def history_of_the_moment(directory: pathlib.Path, num_timesteps: int) -> pathli
     return matches[0] if matches else None
 
 
-def path_of_the_moment(path: Any, num_timesteps: int, verbose: int = 0, what: str = "the history") -> Any:
-    """What to load for a model at ``num_timesteps`` that asks for ``path`` (rl-zoo3's ``-i`` asks for the run's final
-    ``replay_buffer.pkl`` also for a checkpoint): the history or replay buffer saved beside it at ``num_timesteps``
-    by SB3's ``CheckpointCallback``, where there is one, else ``path``."""
+def path_of_the_moment(
+    path: Any, num_timesteps: int, verbose: int = 0, what: str = "the history", history_of: Any = None
+) -> Any:
+    """What to load for a model at ``num_timesteps`` that asks for ``path``: rl-zoo3's ``-i`` asks for the run's final
+    ``replay_buffer.pkl`` also for a checkpoint, so where that file holds policies recorded after the model, and SB3's
+    ``CheckpointCallback`` saved one beside it at ``num_timesteps``, that one; else ``path``.
+
+    :param history_of: The history file saved with a file to load (default: the file itself)
+    """
     if not isinstance(path, (str, pathlib.Path)):
         return path
     asked = pathlib.Path(path)
     asked = asked if asked.suffix == ".pkl" else asked.with_name(asked.name + ".pkl")  # SB3 adds .pkl where missing
     moment = history_of_the_moment(asked.parent, num_timesteps)
-    if moment is None or moment == asked:
+    if moment is None:
         return path
+    latest = latest_recorded((history_of or (lambda file: file))(asked))
+    if moment == asked or (latest is not None and latest <= num_timesteps):  # the model's own moment
+        return moment if moment == asked else path
     if verbose:
         print(f"Loading {what} saved with the checkpoint at {num_timesteps} steps: {moment}")
     return moment
+
+
+def latest_recorded(path: pathlib.Path) -> int | None:
+    """The env step of the latest policy recorded in a history file (its meta data alone is read); None where the
+    file is missing or is not one."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            meta = json.loads(str(archive["meta"]))
+        infos = meta.get("record_info", meta.get("policy_info", []))
+        return max((int(info.get("num_timesteps", 0)) for info in infos), default=0)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, zipfile.BadZipFile):
+        return None
 
 
 def warn_if_newer(history: Any, num_timesteps: int, path: Any) -> None:

@@ -307,7 +307,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         Where either fails, the model keeps its own. rl-zoo3 asks for the run's final ``replay_buffer.pkl`` also for a
         checkpoint: a replay buffer saved beside it at this model's ``num_timesteps`` (SB3's ``CheckpointCallback``
         with ``save_replay_buffer=True``) is loaded instead; snapshots from after it load with a warning."""
-        path = path_of_the_moment(path, self.num_timesteps, self.verbose, "the replay buffer and snapshots")
+        path = path_of_the_moment(path, self.num_timesteps, self.verbose, "the replay buffer and snapshots", snapshots_path)
         previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
