@@ -141,7 +141,7 @@ def test_the_live_chi_without_gradient_follows_every_step_of_the_actor(fused_act
     assert not th.equal(fresh, cached)
 
 
-def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved():
+def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved(tmp_path):
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny(optimizer_kwargs=dict(fused=True)))  # no version counters move
     model.learn(120)
     critic, target, observations = model.policy.critic, model.policy.critic_target, th.randn(8, 3)
@@ -161,6 +161,10 @@ def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved():
     for module, before in ((critic, params), (target, target_params)):  # both critics read the actor that moved
         assert not th.equal(module.actor_record().params, before)
         th.testing.assert_close(module.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
+    assert target.actor_record().params is critic.actor_record().params  # one copy per move, for both critics
+    model.save(tmp_path / "model.zip")
+    loaded = SACPeVFA.load(tmp_path / "model.zip")  # a loaded model shares it again
+    assert loaded.policy.critic_target.actor_record().params is loaded.policy.critic.actor_record().params
 
 
 def test_the_critic_optimizer_is_fused_where_it_reads_chi():

@@ -48,7 +48,8 @@ class SplitLinear(th.autograd.Function):
         width = latent.shape[1]
         per_code = F.linear(code, weight[:, width:], bias)
         ctx.save_for_backward(latent, code, weight, pairing)
-        return F.linear(latent, weight[:, :width]) + (per_code if pairing is None else per_code[pairing])
+        # the per-code bias added by the product itself (one addmm, as nn.Linear's bias)
+        return th.addmm(per_code if pairing is None else per_code[pairing], latent, weight[:, :width].t())
 
     @staticmethod
     def backward(ctx: Any, grad: th.Tensor) -> tuple[th.Tensor | None, ...]:
@@ -59,10 +60,15 @@ class SplitLinear(th.autograd.Function):
         else:
             per_code = grad.new_zeros(code.shape[0], grad.shape[1]).index_add_(0, pairing, grad)
         needs = ctx.needs_input_grad
+        weight_grad = None
+        if needs[2]:  # both blocks written in place into one gradient (no concatenated copy)
+            weight_grad = weight.new_empty(weight.shape)
+            th.mm(grad.t(), latent, out=weight_grad[:, :width])
+            th.mm(per_code.t(), code, out=weight_grad[:, width:])
         return (
             grad @ weight[:, :width] if needs[0] else None,
             per_code @ weight[:, width:] if needs[1] else None,
-            th.cat([grad.t() @ latent, per_code.t() @ code], dim=1) if needs[2] else None,
+            weight_grad,
             per_code.sum(0) if needs[3] else None,
             None,
         )
@@ -159,6 +165,8 @@ class PeVFAContinuousCritic(BaseModel):
         #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
         self.live_chi_gradient = True
         self._cache: dict[str, tuple[tuple, th.Tensor]] = {}
+        #: The live actor's layers and flat copy (shared with the target critic by :meth:`share_actor_copy`)
+        self._actor_cache: dict[str, tuple[tuple, Any]] = {}
         #: Bumped after each step of the actor's and of the critic's optimizer (a fused optimizer moves the weights
         #: without their version counters): the actor's flat copy is taken again only when the actor moved
         self.actor_generation = 0
@@ -172,25 +180,32 @@ class PeVFAContinuousCritic(BaseModel):
         """Mark the encoder's weights as moved (the critic's optimizer's step hook)."""
         self.generation += 1
 
-    def _cached(self, name: str, key: tuple, compute: Any) -> th.Tensor:
-        """``compute()``, again only when ``key`` changed since the last call under ``name`` (never kept from inside
-        ``th.inference_mode``: its tensors cannot be used by a later update)."""
+    def share_actor_copy(self, other: "PeVFAContinuousCritic") -> None:
+        """Read the live actor's flat copy from ``other``'s cache (the target critic from the critic's: one copy per
+        move of the actor; both read the same actor, so a key that differs only recomputes the same copy)."""
+        self._actor_cache = other._actor_cache
+
+    def _cached(self, name: str, key: tuple, compute: Any, cache: dict | None = None) -> Any:
+        """``compute()``, again only when ``key`` changed since the last call under ``name`` in ``cache`` (default:
+        the critic's own; never kept from inside ``th.inference_mode``: its tensors cannot be used by a later
+        update)."""
         if th.is_inference_mode_enabled():
             return compute()
-        if name not in self._cache or self._cache[name][0] != key:
-            self._cache[name] = (key, compute())
-        return self._cache[name][1]
+        cache = self._cache if cache is None else cache
+        if name not in cache or cache[name][0] != key:
+            cache[name] = (key, compute())
+        return cache[name][1]
 
     def _actor_key(self) -> tuple:
         """What the live actor's weights are now: the generation, the storage and version of each tensor."""
         actor = self.actor_holder[0]
-        layers = self._cached("layers", (actor.actor,), lambda: self.layout.linear_layers(actor))
+        layers = self._cached("layers", (actor.actor,), lambda: self.layout.linear_layers(actor), self._actor_cache)
         return (self.actor_generation, *((t.data_ptr(), t._version) for layer in layers for t in (layer.weight, layer.bias)))
 
     def _actor_params(self) -> th.Tensor:
         """The live actor's flat parameters ``(1, n_params)``, copied again only when they moved."""
         flatten = lambda: self.layout.flatten(self.actor_holder[0]).to(self.behaviour_codes.device)[None]  # noqa: E731
-        return self._cached("params", self._actor_key(), flatten)
+        return self._cached("params", self._actor_key(), flatten, self._actor_cache)
 
     def actor_actions(self, states: th.Tensor) -> th.Tensor:
         """The live actor's deterministic actions (SAC: its squashed mean) at flat states, without gradient."""
@@ -225,7 +240,7 @@ class PeVFAContinuousCritic(BaseModel):
             return self._cached("chi", key, lambda: self.representation(record))
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**super().__getstate__(), "_cache": {}}  # a copy reads its own actor
+        return {**super().__getstate__(), "_cache": {}, "_actor_cache": {}}  # a copy reads its own actor
 
     def forward(
         self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None, pairing: th.Tensor | None = None
@@ -320,6 +335,7 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
             accepted = inspect.signature(type(optimizer)).parameters
             settings = {name: value for name, value in optimizer.defaults.items() if name in accepted}
             self.critic.optimizer = type(optimizer)(params, **{**settings, "foreach": None, "fused": True})  # type: ignore[attr-defined]
+        self.critic_target.share_actor_copy(self.critic)  # type: ignore[attr-defined]
         self._register_touch_hooks()
 
     def _register_touch_hooks(self) -> None:
