@@ -1074,8 +1074,12 @@ def test_checkpoints_save_and_load_the_history_of_their_moment(tmp_path):
     final = PPOPeVFA.load(tmp_path / "rl_model_256_steps.zip")  # the last checkpoint, at the run's end
     final.load_replay_buffer(tmp_path / "replay_buffer.pkl")  # the run's own history, not the checkpoint's
     assert final.history.policy_ids == model.history.policy_ids
-    with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128"):
+    with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128") as caught:
         checkpoint.load_history(tmp_path / "replay_buffer.pkl")
+    (tmp_path / "rl_model_replay_buffer_128_steps.pkl").unlink()  # rl-zoo3's -i where no checkpoint history exists
+    with pytest.warns(UserWarning, match="recorded up to 256 steps, this model is at 128") as through_alias:
+        checkpoint.load_replay_buffer(tmp_path / "replay_buffer.pkl")
+    assert caught[0].filename == through_alias[0].filename == __file__  # the warning points at the user's call
     assert checkpoint.history.policy_ids == model.history.policy_ids
 
 

@@ -416,8 +416,9 @@ def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment
     fresh.load_replay_buffer(tmp_path / "replay_buffer")
     assert fresh.replay_buffer.size() == 300 and fresh.history.policy_ids == model.history.policy_ids
     (tmp_path / "rl_model_replay_buffer_150_steps.pkl").unlink()  # rl-zoo3's --save-freq saves no buffer
-    with pytest.warns(UserWarning, match="recorded up to 300 steps, this model is at 150"):
+    with pytest.warns(UserWarning, match="recorded up to 300 steps, this model is at 150") as caught:
         checkpoint.load_replay_buffer(tmp_path / "replay_buffer")
+    assert caught[0].filename == __file__  # the warning points at the user's call
     assert checkpoint.replay_buffer.size() == 300 and checkpoint.history.policy_ids == model.history.policy_ids
 
 

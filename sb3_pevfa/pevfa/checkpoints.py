@@ -5,16 +5,17 @@ SB3's ``CheckpointCallback`` gives a replay buffer (``<prefix>_replay_buffer_<st
 checkpoint finds that history again: :func:`enable_history_checkpoints`, :func:`checkpoint_history`.
 """
 
-import json
+import os
 import pathlib
 import re
+import sys
 import warnings
-import zipfile
 from typing import Any
 
-import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.type_aliases import MaybeCallback
+
+from sb3_pevfa.pevfa.history import PolicyHistory, latest_recorded
 
 _CHECKPOINT = re.compile(r"(?P<prefix>.+)_(?P<steps>\d+)_steps(\.zip)?")
 
@@ -71,34 +72,34 @@ def path_of_the_moment(
     moment = history_of_the_moment(asked.parent, num_timesteps)
     if moment is None:
         return path
+    if moment == asked:  # the checkpoint's own file, under the name it was saved with
+        return moment
     latest = latest_recorded((history_of or (lambda file: file))(asked))
-    if moment == asked or (latest is not None and latest <= num_timesteps):  # the model's own moment
-        return moment if moment == asked else path
+    if latest is not None and latest <= num_timesteps:  # the asked file is of the model's moment (or before it)
+        return path
     if verbose:
         print(f"Loading {what} saved with the checkpoint at {num_timesteps} steps: {moment}")
     return moment
 
 
-def latest_recorded(path: pathlib.Path) -> int | None:
-    """The env step of the latest policy recorded in a history file (its meta data alone is read); None where the
-    file is missing or is not one."""
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            meta = json.loads(str(archive["meta"]))
-        infos = meta.get("record_info", meta.get("policy_info", []))
-        return max((int(info.get("num_timesteps", 0)) for info in infos), default=0)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, zipfile.BadZipFile):
-        return None
-
-
-def warn_if_newer(history: Any, num_timesteps: int, path: Any) -> None:
+def warn_if_newer(history: PolicyHistory, num_timesteps: int, path: Any) -> None:
     """Warn where ``history`` holds policies recorded after ``num_timesteps`` (e.g. a run's final history loaded
-    beside one of its checkpoints)."""
-    latest = max((history.record_info(i).get("num_timesteps", 0) for i in history.policy_ids), default=0)
+    beside one of its checkpoints), at the user's line that asked for it."""
+    latest = history.latest_recorded
     if latest > num_timesteps:
         warnings.warn(
             f"The history {path} holds policies recorded up to {latest} steps, this model is at {num_timesteps}: it "
             "is not the history of this model's moment (for a checkpoint, load the history saved with it: "
             "<prefix>_replay_buffer_<steps>_steps.pkl)",
-            stacklevel=3,
+            stacklevel=_user_stacklevel(),
         )
+
+
+def _user_stacklevel() -> int:
+    """``warnings.warn``'s stacklevel, called from the function calling this one, of the first frame outside the
+    package (the user's call, however many of the package's methods lie between)."""
+    package = str(pathlib.Path(__file__).resolve().parents[1]) + os.sep
+    frame, level = sys._getframe(2), 2
+    while frame is not None and str(pathlib.Path(frame.f_code.co_filename).resolve()).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level

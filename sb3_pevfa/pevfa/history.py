@@ -245,6 +245,11 @@ class PolicyHistory:
         and ``episode_return`` (mean return of the episodes that ended during its rollout) once known."""
         return dict(self._record_info[policy_id])
 
+    @property
+    def latest_recorded(self) -> int:
+        """The ``num_timesteps`` of the latest recorded policy (0 where none is)."""
+        return _latest_num_timesteps(self._record_info.values())
+
     def sample_count(self, policy_id: int) -> int:
         """Number of stored samples of a policy."""
         return self._sample_counts[policy_id]
@@ -696,7 +701,7 @@ class PolicyHistory:
 
     def _from_arrays(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], version: int) -> "PolicyHistory":
         """A copy of this history (same spaces and bounds) holding the records and samples of a file's arrays."""
-        prefix, info_key = ("policy", "policy_info") if version == 1 else ("record", "record_info")
+        prefix, info_key = "policy" if version == 1 else "record", _info_key(version)
         loaded = copy.copy(self)  # same spaces and bounds, its own storage: this history stays intact until the end
         loaded.rng = np.random.default_rng()
         loaded.reset()
@@ -725,6 +730,26 @@ class PolicyHistory:
         loaded._next_id = meta["next_id"]
         loaded.rng.bit_generator.state = meta["rng_state"]
         return loaded
+
+
+def _info_key(version: int | None) -> str:
+    """The meta data's list of record infos in a history file of format ``version``."""
+    return "policy_info" if version == 1 else "record_info"
+
+
+def _latest_num_timesteps(infos: Any) -> int:
+    return max((int(info.get("num_timesteps", 0)) for info in infos), default=0)
+
+
+def latest_recorded(path: str | pathlib.Path) -> int | None:
+    """The ``num_timesteps`` of the latest policy recorded in a history file, from its meta data alone; None where
+    the file is missing or is not a history file."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            meta = json.loads(str(archive["meta"]))
+        return _latest_num_timesteps(meta[_info_key(meta.get("format_version"))])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, zipfile.BadZipFile, zlib.error):
+        return None
 
 
 def _read_archive(path: pathlib.Path | io.IOBase) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
