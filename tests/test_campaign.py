@@ -442,6 +442,13 @@ def test_report_statistics_by_hand(monkeypatch):
     assert "about 4.5 CPU-hours in all, 0.5 wall-clock hours left on 1" in results.expected_duration(
         runs, running, [two_variants], workers=1
     )  # extrapolated from its progress: 3600 CPU-s and wall-s in all, 1800 of them left
+    # a variant with no run yet: its protocol's other variants' mean on the task (never another protocol's)
+    three = definitions.Campaign("sb3", ("A",), ("ppo", "opr", "spr"), (0,), 1000, eval_freq=1000)
+    assert "about 4.5 CPU-hours in all, 1.5 wall-clock hours left on 1" in results.expected_duration(
+        {"A": {"ppo": [done], "opr": [slow]}}, {}, [three], workers=1
+    )  # spr at (1 + 2) / 2 CPU-hours, (1 + 2) / 2 wall-clock hours left
+    assert results.scaled_time({("A", "paper:ppo"): np.ones(2)}, ("A", "authors:random")) is None
+    assert results.scaled_time({("A", "authors:ppo"): np.ones(2)}, ("A", "authors:random")).tolist() == [1.0, 1.0]
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert tables.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half
     # the baseline's spread widens the interval of the normalized IQM

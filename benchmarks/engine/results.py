@@ -57,7 +57,7 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
     """The campaigns' CPU time and the wall-clock time left (a running trial's less its training so far). A run's
     time per task and variant: the completed runs' mean, else extrapolated from running trials' progress (training
     only), else scaled from another variant's time on the task by the two variants' ratio where both ran, else the
-    variant's mean; grid points with none are counted apart."""
+    variant's mean, else its protocol's other variants' mean on the task; grid points with none are counted apart."""
     times: dict[tuple[str, str], np.ndarray] = {}  # (CPU, wall-clock) seconds per run
     for task, by_variant in runs.items():
         for variant, variant_runs in by_variant.items():
@@ -87,7 +87,8 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
         return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
     text = (f"Expected duration: about {total / 3600:.1f} CPU-hours in all, {remaining / 3600 / workers:.1f} wall-clock hours "
             f"left on {workers} workers (from the runs' mean times per task and variant, else running trials' "
-            "progress, else other variants' times scaled by their ratio).")  # fmt: skip
+            "progress, else other variants' times scaled by their ratio, else, for a variant with no run yet, the "
+            "mean of its protocol's other variants on the task).")  # fmt: skip
     if unknown:
         text += f" Not counted: {unknown} runs of variants with no run yet."
     return text
@@ -95,7 +96,8 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
 
 def scaled_time(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) -> np.ndarray | None:
     """A variant's time on a task: another variant's time there times their mean ratio on the tasks where both ran,
-    else the variant's mean over the tasks where it ran; None where the variant has no time yet."""
+    else the variant's mean over the tasks where it ran, else (a variant with no run yet) the mean time of its
+    protocol's other variants on the task; None where none of these has a time."""
     task, variant = key
     own = [k for k in times if k[1] == variant]
     estimates = [
@@ -105,7 +107,11 @@ def scaled_time(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) 
     ]
     if estimates:
         return np.mean(estimates, 0)
-    return np.mean([times[k] for k in own], 0) if own else None
+    if own:
+        return np.mean([times[k] for k in own], 0)
+    protocol = variant.rpartition(":")[0]  # "" where the campaigns share one protocol (plain variant names)
+    peers = [times[k] for k in times if k[0] == task and k[1].rpartition(":")[0] == protocol]
+    return np.mean(peers, 0) if peers else None
 
 
 def status(names: list[str], storage: str | None, workers: int) -> None:
