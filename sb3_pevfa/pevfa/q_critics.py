@@ -61,7 +61,9 @@ class SplitLinear(th.autograd.Function):
             per_code = grad.new_zeros(code.shape[0], grad.shape[1]).index_add_(0, pairing, grad)
         needs = ctx.needs_input_grad
         weight_grad = None
-        if needs[2]:  # both blocks written in place into one gradient (no concatenated copy)
+        if needs[2] and th.is_grad_enabled():  # a double backward: differentiable operations
+            weight_grad = th.cat([grad.t() @ latent, per_code.t() @ code], dim=1)
+        elif needs[2]:  # both blocks written in place into one gradient (no concatenated copy)
             weight_grad = weight.new_empty(weight.shape)
             th.mm(grad.t(), latent, out=weight_grad[:, :width])
             th.mm(per_code.t(), code, out=weight_grad[:, width:])
@@ -165,24 +167,30 @@ class PeVFAContinuousCritic(BaseModel):
         #: the snapshots' in OffPolicyPeVFA, and the live chi is computed once per change of the actor or encoder)
         self.live_chi_gradient = True
         self._cache: dict[str, tuple[tuple, th.Tensor]] = {}
-        #: The live actor's layers and flat copy (shared with the target critic by :meth:`share_actor_copy`)
-        self._actor_cache: dict[str, tuple[tuple, Any]] = {}
-        #: Bumped after each step of the actor's and of the critic's optimizer (a fused optimizer moves the weights
-        #: without their version counters): the actor's flat copy is taken again only when the actor moved
-        self.actor_generation = 0
+        #: The live actor's layers and flat copy and the count of its moves (shared with the target critic by
+        #: :meth:`share_actor_copy`)
+        self._actor_cache: dict[str, Any] = {"generation": 0}
+        #: Bumped after each step of the critic's optimizer, as the actor's count after each of its steps (a fused
+        #: optimizer moves the weights without their version counters): chi and the actor's flat copy are computed
+        #: again only when what they read moved
         self.generation = 0
+
+    @property
+    def actor_generation(self) -> int:
+        """Steps of the actor's optimizer seen (twice per step where the target shares the count: one hook each)."""
+        return self._actor_cache["generation"]
 
     def touch_actor(self, *_: Any) -> None:
         """Mark the actor's weights as moved (its optimizer's step hook)."""
-        self.actor_generation += 1
+        self._actor_cache["generation"] += 1
 
     def touch(self, *_: Any) -> None:
         """Mark the encoder's weights as moved (the critic's optimizer's step hook)."""
         self.generation += 1
 
     def share_actor_copy(self, other: "PeVFAContinuousCritic") -> None:
-        """Read the live actor's flat copy from ``other``'s cache (the target critic from the critic's: one copy per
-        move of the actor; both read the same actor, so a key that differs only recomputes the same copy)."""
+        """Read the live actor's flat copy and the count of its moves from ``other``'s cache (the target critic from
+        the critic's: one copy per move of the actor, for both)."""
         self._actor_cache = other._actor_cache
 
     def _cached(self, name: str, key: tuple, compute: Any, cache: dict | None = None) -> Any:
@@ -240,7 +248,7 @@ class PeVFAContinuousCritic(BaseModel):
             return self._cached("chi", key, lambda: self.representation(record))
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**super().__getstate__(), "_cache": {}, "_actor_cache": {}}  # a copy reads its own actor
+        return {**super().__getstate__(), "_cache": {}, "_actor_cache": {"generation": 0}}  # a copy reads its own actor
 
     def forward(
         self, obs: th.Tensor, actions: th.Tensor, chi: th.Tensor | None = None, pairing: th.Tensor | None = None
@@ -353,6 +361,7 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         super().__setstate__(state)  # type: ignore[misc]
         if "critic" in self.__dict__.get("_modules", {}):
             self._register_touch_hooks()
+            self.critic_target.share_actor_copy(self.critic)  # type: ignore[attr-defined]
 
     def _mode_roots(self) -> tuple[nn.Module, ...]:
         return (self.actor, self.critic)  # type: ignore[attr-defined]
