@@ -143,6 +143,25 @@ def test_two_machines_share_one_campaign_on_postgresql(postgres_url):
     assert (first_out + second).count("pg #") == len(study.trials)
 
 
+@pytest.mark.parametrize("error", ["IntegrityError", "ProgrammingError"])
+def test_a_machine_that_loses_the_race_to_create_the_schema_reads_it(monkeypatch, error):
+    """Machines starting together on a fresh database race to create Optuna's tables: the loser's CREATE fails on a
+    duplicate row (IntegrityError) or table (PostgreSQL's DuplicateTable, a ProgrammingError); it tries again."""
+    import sqlalchemy
+
+    calls = []
+
+    def created_by_another(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == 1:
+            raise getattr(sqlalchemy.exc, error)("CREATE TABLE studies", {}, Exception("already exists"))
+        return "storage"
+
+    monkeypatch.setattr(storage, "RDBStorage", created_by_another)
+    monkeypatch.setattr(storage.time, "sleep", lambda seconds: None)
+    assert storage.storage_of("pg", "postgresql://machine/db") == "storage" and len(calls) == 2
+
+
 def _campaign_main(*args: str) -> None:
     commands.campaign_main(list(args))
 

@@ -44,7 +44,7 @@ def storage_of(campaign: str, storage: str | None = None) -> optuna.storages.Bas
                     grace_period=600,
                     **{RETRY_ARGUMENT: RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)},
                 )
-            except sqlalchemy.exc.IntegrityError:
+            except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):  # a duplicate row, or table
                 if attempt == 2:
                     raise
                 time.sleep(1.0 + attempt)

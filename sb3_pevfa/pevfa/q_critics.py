@@ -361,7 +361,9 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         super().__setstate__(state)  # type: ignore[misc]
         if "critic" in self.__dict__.get("_modules", {}):
             self._register_touch_hooks()
-            self.critic_target.share_actor_copy(self.critic)  # type: ignore[attr-defined]
+            critic, target = self.critic, self.critic_target  # type: ignore[attr-defined]
+            if all("_actor_cache" in vars(module) for module in (critic, target)):  # not mid-copy of a critic alone
+                target.share_actor_copy(critic)
 
     def _mode_roots(self) -> tuple[nn.Module, ...]:
         return (self.actor, self.critic)  # type: ignore[attr-defined]
