@@ -185,6 +185,8 @@ def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved(tmp
     for policy in (loaded, copy.deepcopy(loaded)):  # shared again
         assert policy.critic_target.actor_record().params is policy.critic.actor_record().params
         assert policy.critic_target.actor_generation == policy.critic.actor_generation
+        policy.critic.touch_actor()  # one count of the actor's moves for both critics
+        assert policy.critic_target.actor_generation == policy.critic.actor_generation
 
 
 def test_the_critic_optimizer_is_fused_where_it_reads_chi():

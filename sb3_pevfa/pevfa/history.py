@@ -701,7 +701,7 @@ class PolicyHistory:
 
     def _from_arrays(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], version: int) -> "PolicyHistory":
         """A copy of this history (same spaces and bounds) holding the records and samples of a file's arrays."""
-        prefix, info_key = "policy" if version == 1 else "record", _info_key(version)
+        prefix, info_key = ("policy" if version == 1 else "record"), _info_key(version)
         loaded = copy.copy(self)  # same spaces and bounds, its own storage: this history stays intact until the end
         loaded.rng = np.random.default_rng()
         loaded.reset()
@@ -738,6 +738,7 @@ def _info_key(version: int | None) -> str:
 
 
 def _latest_num_timesteps(infos: Any) -> int:
+    """The largest ``num_timesteps`` of record infos (0 where there are none)."""
     return max((int(info.get("num_timesteps", 0)) for info in infos), default=0)
 
 

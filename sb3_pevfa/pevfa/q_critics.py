@@ -343,27 +343,28 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
             accepted = inspect.signature(type(optimizer)).parameters
             settings = {name: value for name, value in optimizer.defaults.items() if name in accepted}
             self.critic.optimizer = type(optimizer)(params, **{**settings, "foreach": None, "fused": True})  # type: ignore[attr-defined]
-        self.critic_target.share_actor_copy(self.critic)  # type: ignore[attr-defined]
-        self._register_touch_hooks()
+        self._link_critics()
 
-    def _register_touch_hooks(self) -> None:
-        """Each step of the actor's or the critic's optimizer marks both critics' caches of it as stale (once per
-        optimizer: a copied or unpickled optimizer comes without its hooks)."""
+    def _link_critics(self) -> None:
+        """The target critic reads the critic's flat copy of the actor, and each step of the actor's or the critic's
+        optimizer marks both critics' caches of it as stale (once per optimizer: a copied or unpickled optimizer
+        comes without its hooks). Where a critic alone is deep-copied, its policy is copied half-way: the critics are
+        then left apart (each takes its own copy)."""
+        critic, target = self.critic, self.critic_target  # type: ignore[attr-defined]
+        if all("_actor_cache" in vars(module) for module in (critic, target)):
+            target.share_actor_copy(critic)
         for model, hook in ((self.actor, "touch_actor"), (self.critic, "touch")):  # type: ignore[attr-defined]
             optimizer = getattr(model, "optimizer", None)
             if optimizer is None or getattr(optimizer, "_pevfa_touch_hooks", False):
                 continue
-            for critic in (self.critic, self.critic_target):  # type: ignore[attr-defined]
-                optimizer.register_step_post_hook(getattr(critic, hook))
+            for module in (critic, target):
+                optimizer.register_step_post_hook(getattr(module, hook))
             optimizer._pevfa_touch_hooks = True
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         super().__setstate__(state)  # type: ignore[misc]
         if "critic" in self.__dict__.get("_modules", {}):
-            self._register_touch_hooks()
-            critic, target = self.critic, self.critic_target  # type: ignore[attr-defined]
-            if all("_actor_cache" in vars(module) for module in (critic, target)):  # not mid-copy of a critic alone
-                target.share_actor_copy(critic)
+            self._link_critics()
 
     def _mode_roots(self) -> tuple[nn.Module, ...]:
         return (self.actor, self.critic)  # type: ignore[attr-defined]
