@@ -123,6 +123,7 @@ def test_a_journal_of_the_old_layout_finishes_its_grid_and_reports_both_runs(tmp
     assert "Campaigns old-layout: 2 of 2 runs complete." in text and text == result.stdout.removesuffix("\n")
     assert f"| {TASK} | {scores.mean():.0f} ± {scores.std() / 2:.0f} (2) |" in text
     assert (tmp_path / "report" / "curves.png").stat().st_size > 10_000
+    assert (tmp_path / "report" / "summary.md").read_text().startswith("2 of 2 runs complete, 4,000 env steps per run.")
 
 
 def test_two_machines_share_one_campaign_on_postgresql(postgres_url):
@@ -377,7 +378,7 @@ def test_report_statistics_by_hand(monkeypatch):
     # speed against the baseline's runs on the same machine: 50 against 100 there, not against 400 on another
     def timed(speed: float, boot: str) -> dict:
         return {"steps_per_cpu_second": speed, "steps_per_wall_second": speed, "cpu_seconds": 4.0, "curve": run["curve"],
-                "worker": {"boot_id": boot}}  # fmt: skip
+                "worker": {"boot_id": boot}, "max_average_return": 9.0}  # fmt: skip
 
     rows = tables.speed({"A": {"ppo": [timed(100, "a"), timed(400, "b")], "opr-e2e": [timed(50, "a")]}}, "ppo")
     assert rows[0] == "| task | ppo | opr-e2e |" and rows[2] == "| A | 250 (250), 0 | 0.50x (0.50x), 1.00x, 0 |"
@@ -475,6 +476,39 @@ def test_report_statistics_by_hand(monkeypatch):
     fixed = aggregate.stratified_bootstrap_ci(aggregate.normalized(scores, base))
     low, high = aggregate.normalized_bootstrap_ci(scores, base)
     assert high - low > 2 * (fixed[1] - fixed[0]) and low < 2.0 < high
+
+
+def test_a_results_pages_table_and_summary_by_hand(monkeypatch):
+    """Per task: the returns, the variant's ratios per step, at the baseline's CPU time and in speed, another
+    protocol's per step and the paper's; the summary picks the target's variant and says when it is provisional."""
+
+    def run(best: list[float], cpu_s: list[float], cpu: float, speed: float) -> dict:
+        return {"max_average_return": max(best), "cpu_seconds": cpu, "steps_per_cpu_second": speed,
+                "steps_per_wall_second": speed**0.5, "curve": {"mean": best, "cpu_s": cpu_s}}  # fmt: skip
+
+    ppo = [run([100.0], [1.0], 2.0, 100.0), run([200.0], [1.0], 2.0, 100.0)]
+    opr = [run([150.0, 300.0], [1.5, 4.0], 4.0, 50.0)] * 2  # 150 within ppo's 2 CPU-seconds, 300 by its end
+    runs = {"X": {"ppo": ppo[:1]}, "Hopper-v5": {"ppo": ppo, "opr-e2e": opr}}
+    other = {"Hopper-v5": {"ppo": ppo[:1], "opr-e2e": [run([50.0], [1.0], 2.0, 100.0)]}}
+    assert tables.compact(runs, "ppo", "opr-e2e", other, "that protocol") == [
+        "| task | ppo | opr-e2e | per step | at ppo's CPU time | speed | that protocol, per step | the paper, per step |",
+        "|---|---|---|---|---|---|---|---|",
+        "| Hopper-v5 | 150 ± 25 (2) | 300 ± 0 (2) | 2.00x | 1.00x | 0.50x | 0.50x | 1.27x |",  # Table 1's order first
+        "| X | 100 ± 0 (1) | — | — | — | — | — | — |",
+    ]
+    alone = tables.compact({"A": runs["Hopper-v5"]}, "ppo", "opr-e2e")  # no other protocol, no published value
+    assert alone[2] == "| A | 150 ± 25 (2) | 300 ± 0 (2) | 2.00x | 1.00x | 0.50x |"
+    runs["Hopper-v5"]["random"] = opr  # the target's variant, not the first in Table 1's order
+    grid = definitions.Campaign("paper", ("Hopper-v5", "X"), ("ppo", "random", "opr-e2e"), (0, 1), 1000, eval_freq=1000)
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [grid]))
+    text = engine.report.summary(["c"], None, "ppo")
+    assert text.startswith("7 of 12 runs complete, 1,000 env steps per run (provisional). Best evaluation")
+    assert "| task | ppo | opr-e2e | per step |" in text and "| ppo | 2 | 3 |" in text and "| random | 1 | 2 |" in text
+    assert text.rstrip().endswith("provisional, runs to come: 2 of opr-e2e, 1 of ppo")
+    sb3 = types.SimpleNamespace(**{**vars(grid), "protocol": "sb3", "grid": grid.grid})  # a protocol without a target
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [sb3]))
+    text = engine.report.summary(["c"], None, "ppo")  # the first variant compared
+    assert "| task | ppo | random | per step |" in text and "Target" not in text
 
 
 def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_compare(monkeypatch):

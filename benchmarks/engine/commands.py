@@ -12,7 +12,7 @@ import optuna
 
 from . import training_logs, zoo_report
 from .definitions import CAMPAIGNS, VARIANTS, ZOO_VARIANTS, Campaign
-from .report import report
+from .report import report, summary
 from .results import status
 from .storage import open_study, storage_of
 from .workers import run, work
@@ -73,7 +73,8 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     parser.add_argument("--storage", default=None, help=STORAGE_HELP)
     parser.add_argument("--baseline", default="ppo", help="the variant every ratio is to")
     parser.add_argument("--workers", type=int, default=2, help="cores the expected duration is for")
-    parser.add_argument("--out", type=pathlib.Path, default=None, help="write report.md and curves.png in this folder")
+    where = "write report.md, summary.md (a results page's share of it) and the figures in this folder"
+    parser.add_argument("--out", type=pathlib.Path, default=None, help=where)
     parser.add_argument("--beside", nargs="+", default=None, help="campaigns of another protocol, their ratios beside")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -81,6 +82,7 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     text = report(args.campaign, args.storage, args.baseline, args.workers, png, args.beside)
     if args.out:
         (args.out / "report.md").write_text(text)
+        (args.out / "summary.md").write_text(summary(args.campaign, args.storage, args.baseline, args.beside))
     print(text)
 
 

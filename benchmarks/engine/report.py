@@ -2,13 +2,15 @@
 text, the figures (``figures``) beside it."""
 
 import pathlib
+from typing import Any
 
 import numpy as np
 
 from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
 
+from .definitions import Campaign
 from .figures import plot, plot_beside, plot_local_generalization
-from .results import collect, expected_duration
+from .results import Runs, collect, expected_duration
 from .tables import (
     ORDER,
     PAPER_TABLE1,
@@ -16,7 +18,9 @@ from .tables import (
     aggregates,
     baseline_beside,
     beside,
+    compact,
     comparable,
+    compared_variants,
     local_generalization,
     speed,
     table,
@@ -29,6 +33,45 @@ from .tables import (
 PUBLISHED = {"paper": ("the paper", PAPER_DEVIATIONS), "authors": ("the authors' code", AUTHORS_DEVIATIONS)}
 #: How the report names a protocol where its name alone would read oddly
 PROTOCOL_NAMES = {"authors": "authors' protocol"}
+
+
+def target_of(runs: Runs, campaigns: list[Campaign], baseline: str) -> tuple[dict[str, Any] | None, list[str]]:
+    """The campaigns' target (where they are of one protocol that has one) and its reading from the runs."""
+    protocols = {c.protocol for c in campaigns}
+    spec = TARGETS.get(next(iter(protocols))) if len(protocols) == 1 else None
+    if spec is None:
+        return None, []
+    planned: dict[str, int] = {}
+    for c in campaigns:
+        for variant in c.variants:
+            planned[variant] = planned.get(variant, 0) + len(c.tasks) * len(c.seeds)
+    return spec, target(runs, baseline, planned, spec)
+
+
+def summary(names: list[str], storage: str | None, baseline: str, beside_names: list[str] | None = None) -> str:
+    """A results page's share of the report: the runs complete, per task the target's variant (else the first
+    compared) against the baseline (``tables.compact``; beside it, per env step, ``beside_names``' protocol), the
+    aggregates over tasks and the target's reading."""
+    runs, _, _, campaigns = collect(names, storage)
+    complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
+    total = sum(len(c.grid) for c in campaigns)
+    steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
+    lines = [f"{complete} of {total} runs complete, {steps} env steps per run" + (" (provisional)." if complete < total
+             else ".") + " Best evaluation (mean ± half std over seeds, runs in brackets) and the ratios to "
+             f"{baseline}'s:", ""]  # fmt: skip
+    spec, lines_of_target = target_of(runs, campaigns, baseline)
+    variants = [v for v in compared_variants(runs) if v != baseline]
+    if not runs or not variants:
+        return lines[0] + "\n"
+    variant = spec["variant"] if spec is not None and spec["variant"] in variants else variants[0]
+    other, label = None, ""
+    if beside_names:
+        other, _, _, others = collect(beside_names, storage)
+        label = "/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in others}))
+    lines += [*compact(runs, baseline, variant, other, label), "", *aggregates(runs, baseline)[0], ""]
+    if lines_of_target:
+        lines += [f"Target ({target_wording(spec, baseline)}):", "", *lines_of_target]  # type: ignore[arg-type]
+    return "\n".join(lines).rstrip() + "\n"
 
 
 def report(
@@ -88,14 +131,7 @@ def report(
                      baseline_beside(runs, other, baseline, labels, steps)]  # fmt: skip
         if png is not None:
             plot_beside(runs, other, baseline, labels, png.with_name("beside.png"))  # type: ignore[arg-type]
-    spec = TARGETS.get(next(iter(protocols))) if len(protocols) == 1 else None
-    lines_of_target = []
-    if spec is not None:
-        planned: dict[str, int] = {}
-        for c in campaigns:
-            for variant in c.variants:
-                planned[variant] = planned.get(variant, 0) + len(c.tasks) * len(c.seeds)
-        lines_of_target = target(runs, baseline, planned, spec)
+    spec, lines_of_target = target_of(runs, campaigns, baseline)
     if lines_of_target:  # where the target's variant and the baseline have runs
         sections += [[f"Against the target for {spec['variant']} ({target_wording(spec, baseline)}):"], lines_of_target]
     if paper:

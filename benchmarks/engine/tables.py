@@ -269,6 +269,31 @@ def at_baseline_cpu(run: dict[str, Any], base_runs: list[dict[str, Any]]) -> flo
     return best_so_far_at(run, float(np.mean([b["cpu_seconds"] for b in same_machine(run, base_runs)])))
 
 
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else np.nan
+
+
+def against_baseline(variant_runs: list[dict[str, Any]], base_runs: list[dict[str, Any]]) -> dict[str, float]:
+    """The variant's runs over the baseline's on one task: ``per_step`` (mean max average return over the baseline's
+    mean), ``cpu_speed`` and ``wall_speed`` (mean of each run's steps per CPU- and wall-second over the baseline's mean
+    on its machine), ``at_cpu`` (mean best return within the baseline's mean CPU time, over the baseline's own, nan
+    where not positive) and ``minutes`` (its mean CPU minutes per run)."""
+    base = _mean([r["max_average_return"] for r in base_runs])
+    base_best = _mean([at_baseline_cpu(r, base_runs) for r in base_runs])
+    best = _mean([at_baseline_cpu(r, base_runs) for r in variant_runs])
+    return {
+        "per_step": _mean([r["max_average_return"] for r in variant_runs]) / base if base > 0 else np.nan,
+        "cpu_speed": _mean([speed_ratio(r, base_runs, "steps_per_cpu_second") for r in variant_runs]),
+        "wall_speed": _mean([speed_ratio(r, base_runs, "steps_per_wall_second") for r in variant_runs]),
+        "at_cpu": best / base_best if np.isfinite(best) and base_best > 0 else np.nan,
+        "minutes": _mean([r["cpu_seconds"] for r in variant_runs]) / 60,
+    }
+
+
+def _times(value: float) -> str:
+    return f"{value:.2f}x" if np.isfinite(value) else "—"
+
+
 def speed(runs: Runs, baseline: str) -> list[str]:
     """Per task: the baseline's steps per CPU-second (wall-clock) and CPU minutes per run; per other variant, its
     speed per CPU-second (wall-clock) and best-so-far return within the baseline's mean CPU time, as ratios to the
@@ -276,28 +301,49 @@ def speed(runs: Runs, baseline: str) -> list[str]:
     variants = [v for v in compared_variants(runs) if v != baseline]
     lines = [f"| task | {baseline} | " + " | ".join(variants) + " |",
              "|---" * (len(variants) + 2) + "|"]  # fmt: skip
-
-    def mean(values: list[float]) -> float:
-        return float(np.mean(values)) if values else np.nan
-
     for task, by_variant in runs.items():
         base_runs = by_variant.get(baseline, [])
-        base_cpu = mean([r["cpu_seconds"] for r in base_runs])
-        base_best = mean([at_baseline_cpu(r, base_runs) for r in base_runs])
-        base_speed = mean([r["steps_per_cpu_second"] for r in base_runs])
-        base_wall = mean([r["steps_per_wall_second"] for r in base_runs])
+        base_cpu = _mean([r["cpu_seconds"] for r in base_runs])
+        base_speed = _mean([r["steps_per_cpu_second"] for r in base_runs])
+        base_wall = _mean([r["steps_per_wall_second"] for r in base_runs])
         cells = [f"{base_speed:.0f} ({base_wall:.0f}), {base_cpu / 60:.0f}" if base_runs else "—"]
         for variant in variants:
             variant_runs = by_variant.get(variant, [])
             if not variant_runs or not base_runs:
                 cells.append("—")
                 continue
-            cpu_speed = mean([speed_ratio(r, base_runs, "steps_per_cpu_second") for r in variant_runs])
-            wall_speed = mean([speed_ratio(r, base_runs, "steps_per_wall_second") for r in variant_runs])
-            best = mean([at_baseline_cpu(r, base_runs) for r in variant_runs])
-            best_ratio = f"{best / base_best:.2f}x" if np.isfinite(best) and base_best > 0 else "—"
-            minutes = mean([r["cpu_seconds"] for r in variant_runs]) / 60
-            cells.append(f"{cpu_speed:.2f}x ({wall_speed:.2f}x), {best_ratio}, {minutes:.0f}")
+            r = against_baseline(variant_runs, base_runs)
+            cells.append(f"{r['cpu_speed']:.2f}x ({r['wall_speed']:.2f}x), {_times(r['at_cpu'])}, {r['minutes']:.0f}")
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, label: str = "") -> list[str]:
+    """A results page's table: per task the baseline's and the variant's max average return (mean ± half std over
+    seeds, runs in brackets), the variant's ratios to the baseline per env step, at the baseline's CPU time and in
+    steps per CPU-second; per env step in ``other`` runs (another protocol's, ``label``) and in the paper's Table 1
+    where it has the variant."""
+    head = [baseline, variant, "per step", f"at {baseline}'s CPU time", "speed"]
+    head += [f"{label}, per step"] if other is not None else []
+    head += ["the paper, per step"] if any(variant in PAPER_TABLE1.get(t, {}) for t in runs) else []
+    lines = ["| task | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    for task in table1_order(runs, other or {}):
+        by_variant = runs.get(task, {})
+        base_runs, variant_runs = by_variant.get(baseline, []), by_variant.get(variant, [])
+        cells = [_cell(np.array([r["max_average_return"] for r in rs])) if rs else "—" for rs in (base_runs, variant_runs)]
+        if base_runs and variant_runs:
+            r = against_baseline(variant_runs, base_runs)
+            cells += [_times(r["per_step"]), _times(r["at_cpu"]), _times(r["cpu_speed"])]
+        else:
+            cells += ["—"] * 3
+        if other is not None:
+            theirs = other.get(task, {})
+            both = theirs.get(baseline) and theirs.get(variant)
+            cells.append(_times(against_baseline(theirs[variant], theirs[baseline])["per_step"]) if both else "—")
+        if len(head) > len(cells):
+            published = PAPER_TABLE1.get(task, {})
+            cells.append(_times(published[variant][0] / published[baseline][0]) if {variant, baseline} <= set(published)
+                         else "—")  # fmt: skip
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
     return lines
 
