@@ -509,6 +509,8 @@ def test_a_results_pages_table_and_summary_by_hand(monkeypatch):
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [sb3]))
     text = engine.report.summary(["c"], None, "ppo")  # the first variant compared
     assert "| task | ppo | random | per step |" in text and "Target" not in text
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: ({}, {}, [], [grid]))
+    assert engine.report.summary(["c"], None, "ppo") == "0 of 12 runs complete, 1,000 env steps per run (provisional).\n"
 
 
 def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_compare(monkeypatch):

@@ -56,13 +56,13 @@ def summary(names: list[str], storage: str | None, baseline: str, beside_names: 
     complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
     total = sum(len(c.grid) for c in campaigns)
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
-    lines = [f"{complete} of {total} runs complete, {steps} env steps per run" + (" (provisional)." if complete < total
-             else ".") + " Best evaluation (mean ± half std over seeds, runs in brackets) and the ratios to "
-             f"{baseline}'s:", ""]  # fmt: skip
+    head = f"{complete} of {total} runs complete, {steps} env steps per run" + (" (provisional)." if complete < total
+                                                                                 else ".")  # fmt: skip
     spec, lines_of_target = target_of(runs, campaigns, baseline)
     variants = [v for v in compared_variants(runs) if v != baseline]
     if not runs or not variants:
-        return lines[0] + "\n"
+        return head + "\n"
+    lines = [f"{head} Best evaluation (mean ± half std over seeds, runs in brackets) and the ratios to {baseline}'s:", ""]
     variant = spec["variant"] if spec is not None and spec["variant"] in variants else variants[0]
     other, label = None, ""
     if beside_names:
