@@ -480,35 +480,57 @@ def test_report_statistics_by_hand(monkeypatch):
 
 def test_a_results_pages_table_and_summary_by_hand(monkeypatch):
     """Per task: the returns, the variant's ratios per step, at the baseline's CPU time and in speed, another
-    protocol's per step and the paper's; the summary picks the target's variant and says when it is provisional."""
+    protocol's per step and the paper's; the summary picks the target's variant, reads the storage once with its
+    report and says what is provisional or left out."""
+
+    made = {"final_return": 0.0, "eval_cpu_seconds": 0.0, "wall_seconds": 2.0, "eval_wall_seconds": 0.0, "seed": 0,
+            "commit": "abc", "machine": "m", "versions": dict.fromkeys(("torch", "stable_baselines3", "gymnasium",
+                                                                          "mujoco"), "1")}  # fmt: skip
 
     def run(best: list[float], cpu_s: list[float], cpu: float, speed: float) -> dict:
-        return {"max_average_return": max(best), "cpu_seconds": cpu, "steps_per_cpu_second": speed,
-                "steps_per_wall_second": speed**0.5, "curve": {"mean": best, "cpu_s": cpu_s}}  # fmt: skip
+        curve = {"mean": best, "cpu_s": cpu_s, "steps": [1000] * len(best)}
+        return {"max_average_return": max(best), "cpu_seconds": cpu, "steps_per_cpu_second": speed, **made,
+                "steps_per_wall_second": speed**0.5, "curve": curve}  # fmt: skip
 
-    ppo = [run([100.0], [1.0], 2.0, 100.0), run([200.0], [1.0], 2.0, 100.0)]
-    opr = [run([150.0, 300.0], [1.5, 4.0], 4.0, 50.0)] * 2  # 150 within ppo's 2 CPU-seconds, 300 by its end
+    # ppo's best within its own 2 CPU-seconds: 100 and 200 (mean 150); over its runs: 140 and 200 (mean 170)
+    ppo = [run([100.0, 140.0], [1.0, 3.0], 2.0, 100.0), run([200.0], [1.0], 2.0, 100.0)]
+    opr = [run([150.0, 340.0], [1.5, 4.0], 4.0, 50.0)] * 2  # 150 within ppo's 2 CPU-seconds, 340 by its end
     runs = {"X": {"ppo": ppo[:1]}, "Hopper-v5": {"ppo": ppo, "opr-e2e": opr}}
-    other = {"Hopper-v5": {"ppo": ppo[:1], "opr-e2e": [run([50.0], [1.0], 2.0, 100.0)]}}
+    other = {"Hopper-v5": {"ppo": ppo[:1], "opr-e2e": [run([50.0], [1.0], 2.0, 100.0)]}}  # 50 / 140 per step
     assert tables.compact(runs, "ppo", "opr-e2e", other, "that protocol") == [
         "| task | ppo | opr-e2e | per step | at ppo's CPU time | speed | that protocol, per step | the paper, per step |",
         "|---|---|---|---|---|---|---|---|",
-        "| Hopper-v5 | 150 ± 25 (2) | 300 ± 0 (2) | 2.00x | 1.00x | 0.50x | 0.50x | 1.27x |",  # Table 1's order first
-        "| X | 100 ± 0 (1) | — | — | — | — | — | — |",
+        "| Hopper-v5 | 170 ± 15 (2) | 340 ± 0 (2) | 2.00x | 1.00x | 0.50x | 0.36x | 1.27x |",  # Table 1's order first
+        "| X | 140 ± 0 (1) | — | — | — | — | — | — |",
     ]
     alone = tables.compact({"A": runs["Hopper-v5"]}, "ppo", "opr-e2e")  # no other protocol, no published value
-    assert alone[2] == "| A | 150 ± 25 (2) | 300 ± 0 (2) | 2.00x | 1.00x | 0.50x |"
+    assert alone[2] == "| A | 170 ± 15 (2) | 340 ± 0 (2) | 2.00x | 1.00x | 0.50x |"
     runs["Hopper-v5"]["random"] = opr  # the target's variant, not the first in Table 1's order
     grid = definitions.Campaign("paper", ("Hopper-v5", "X"), ("ppo", "random", "opr-e2e"), (0, 1), 1000, eval_freq=1000)
-    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [grid]))
+    theirs = definitions.Campaign("paper", ("Hopper-v5",), ("ppo", "opr-e2e"), (0, 1), 1000, eval_freq=1000)
+    reads = []
+
+    def collect(names: list[str], storage: str | None) -> tuple:
+        reads.append(names[0])
+        return (runs, {}, [], [grid]) if names[0] == "c" else (other, {}, [], [theirs])
+
+    monkeypatch.setattr(engine.report, "collect", collect)
     text = engine.report.summary(["c"], None, "ppo")
     assert text.startswith("7 of 12 runs complete, 1,000 env steps per run (provisional). Best evaluation")
     assert "| task | ppo | opr-e2e | per step |" in text and "| ppo | 2 | 3 |" in text and "| random | 1 | 2 |" in text
     assert text.rstrip().endswith("provisional, runs to come: 2 of opr-e2e, 1 of ppo")
+    cache: dict = {}
+    beside = engine.report.summary(["c"], None, "ppo", ["d"], cache)
+    assert "| 0.36x | 1.27x |" in beside and "The paper protocol's column: 2 of 4 runs complete (provisional)." in beside
+    engine.report.report(["c"], None, "ppo", 2, None, ["d"], cache)
+    assert reads[-2:] == ["c", "d"]  # the report read nothing again
     sb3 = types.SimpleNamespace(**{**vars(grid), "protocol": "sb3", "grid": grid.grid})  # a protocol without a target
+    runs["Y"] = {"ppo": [run([-5.0], [1.0], 2.0, 100.0)], "random": opr}
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [sb3]))
     text = engine.report.summary(["c"], None, "ppo")  # the first variant compared
     assert "| task | ppo | random | per step |" in text and "Target" not in text
+    assert "| Y | -5 ± 0 (1) | 340 ± 0 (2) | — | — | 0.50x | — |" in text  # no ratio to a negative mean
+    assert "Left out of the aggregates and the target: Y, where ppo's mean is not positive" in text
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: ({}, {}, [], [grid]))
     assert engine.report.summary(["c"], None, "ppo") == "0 of 12 runs complete, 1,000 env steps per run (provisional).\n"
 

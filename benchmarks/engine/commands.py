@@ -79,10 +79,11 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     png = args.out / "curves.png" if args.out else None
-    text = report(args.campaign, args.storage, args.baseline, args.workers, png, args.beside)
+    cache: dict = {}  # the report and its summary read the storage once
+    text = report(args.campaign, args.storage, args.baseline, args.workers, png, args.beside, cache)
     if args.out:
         (args.out / "report.md").write_text(text)
-        (args.out / "summary.md").write_text(summary(args.campaign, args.storage, args.baseline, args.beside))
+        (args.out / "summary.md").write_text(summary(args.campaign, args.storage, args.baseline, args.beside, cache))
     print(text)
 
 

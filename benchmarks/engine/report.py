@@ -35,6 +35,40 @@ PUBLISHED = {"paper": ("the paper", PAPER_DEVIATIONS), "authors": ("the authors'
 PROTOCOL_NAMES = {"authors": "authors' protocol"}
 
 
+#: What ``collect`` reads from the storage: runs, progress, notes, campaigns
+Collected = tuple[Runs, dict, list[str], list[Campaign]]
+
+
+def read(names: list[str], storage: str | None, cache: dict[tuple, Collected] | None = None) -> Collected:
+    """``collect(names, storage)``, once per ``cache`` (a report and its summary then read the same runs while workers
+    write the storage)."""
+    if cache is None:
+        return collect(names, storage)
+    key = (tuple(names), storage)
+    if key not in cache:
+        cache[key] = collect(names, storage)
+    return cache[key]
+
+
+def left_out(runs: Runs, baseline: str) -> list[str]:
+    """The note on the tasks that the aggregates and the target leave out (the baseline's mean not positive)."""
+    flipped = [t for t, bv in runs.items() if bv.get(baseline) and t not in comparable(runs, baseline, baseline)]
+    if not flipped:
+        return []
+    return [f"Left out of the aggregates and the target: {', '.join(flipped)}, where {baseline}'s mean is not positive "
+            "(a ratio to it would reverse the order of the scores)"]  # fmt: skip
+
+
+def protocol_label(campaigns: list[Campaign]) -> str:
+    """The campaigns' protocol(s) as the report names them."""
+    return "/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in campaigns}))
+
+
+def counted(runs: Runs, campaigns: list[Campaign]) -> tuple[int, int]:
+    """The runs complete and the runs of the campaigns' grids."""
+    return sum(len(rs) for bv in runs.values() for rs in bv.values()), sum(len(c.grid) for c in campaigns)
+
+
 def target_of(runs: Runs, campaigns: list[Campaign], baseline: str) -> tuple[dict[str, Any] | None, list[str]]:
     """The campaigns' target (where they are of one protocol that has one) and its reading from the runs."""
     protocols = {c.protocol for c in campaigns}
@@ -48,13 +82,18 @@ def target_of(runs: Runs, campaigns: list[Campaign], baseline: str) -> tuple[dic
     return spec, target(runs, baseline, planned, spec)
 
 
-def summary(names: list[str], storage: str | None, baseline: str, beside_names: list[str] | None = None) -> str:
+def summary(
+    names: list[str],
+    storage: str | None,
+    baseline: str,
+    beside_names: list[str] | None = None,
+    cache: dict[tuple, Collected] | None = None,
+) -> str:
     """A results page's share of the report: the runs complete, per task the target's variant (else the first
     compared) against the baseline (``tables.compact``; beside it, per env step, ``beside_names``' protocol), the
-    aggregates over tasks and the target's reading."""
-    runs, _, _, campaigns = collect(names, storage)
-    complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
-    total = sum(len(c.grid) for c in campaigns)
+    aggregates over tasks and the target's reading; ``cache``: as :func:`read`'s."""
+    runs, _, _, campaigns = read(names, storage, cache)
+    complete, total = counted(runs, campaigns)
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
     head = f"{complete} of {total} runs complete, {steps} env steps per run" + (" (provisional)." if complete < total
                                                                                  else ".")  # fmt: skip
@@ -64,11 +103,14 @@ def summary(names: list[str], storage: str | None, baseline: str, beside_names: 
         return head + "\n"
     lines = [f"{head} Best evaluation (mean ± half std over seeds, runs in brackets) and the ratios to {baseline}'s:", ""]
     variant = spec["variant"] if spec is not None and spec["variant"] in variants else variants[0]
-    other, label = None, ""
+    other, label, apart = None, "", []
     if beside_names:
-        other, _, _, others = collect(beside_names, storage)
-        label = "/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in others}))
-    lines += [*compact(runs, baseline, variant, other, label), "", *aggregates(runs, baseline)[0], ""]
+        other, _, _, others = read(beside_names, storage, cache)
+        label = protocol_label(others)
+        done, planned = counted(other, others)
+        apart = [f"The {label}'s column: {done} of {planned} runs complete (provisional).", ""] if done < planned else []
+    lines += [*compact(runs, baseline, variant, other, label), "", *apart, *aggregates(runs, baseline)[0], ""]
+    lines += [*left_out(runs, baseline), ""]
     if lines_of_target:
         lines += [f"Target ({target_wording(spec, baseline)}):", "", *lines_of_target]  # type: ignore[arg-type]
     return "\n".join(lines).rstrip() + "\n"
@@ -81,14 +123,15 @@ def report(
     workers: int,
     png: pathlib.Path | None,
     beside_names: list[str] | None = None,
+    cache: dict[tuple, Collected] | None = None,
 ) -> str:
     """The report's text (and its figures written beside ``png``); ``beside_names``: campaigns of another protocol whose
-    ratios to the baseline, per task and over tasks, stand beside these campaigns'."""
-    runs, progress, notes, campaigns = collect(names, storage)
+    ratios to the baseline, per task and over tasks, stand beside these campaigns'; ``cache``: as :func:`read`'s."""
+    runs, progress, notes, campaigns = read(names, storage, cache)
+    notes = list(notes)  # the cache's stay as read
     protocols = {c.protocol for c in campaigns}
     paper = len(protocols) == 1 and protocols <= set(PUBLISHED)
-    complete = sum(len(rs) for bv in runs.values() for rs in bv.values())
-    total = sum(len(c.grid) for c in campaigns)
+    complete, total = counted(runs, campaigns)
     lines = [f"Campaigns {', '.join(names)}: {complete} of {total} runs complete.", ""]
     if not runs:
         return "\n".join(lines)
@@ -96,10 +139,7 @@ def report(
     machines = sorted({r["machine"] for bv in runs.values() for rs in bv.values() for r in rs})
     made = [r for bv in runs.values() for rs in bv.values() for r in rs]
     versions = {name: "/".join(sorted({str(r["versions"].get(name, "?")) for r in made})) for name in made[0]["versions"]}
-    flipped = [t for t, bv in runs.items() if bv.get(baseline) and t not in comparable(runs, baseline, baseline)]
-    if flipped:
-        notes.append(f"Left out of the aggregates and the target: {', '.join(flipped)}, where {baseline}'s mean is not "
-                     "positive (a ratio to it would reverse the order of the scores)")  # fmt: skip
+    notes += left_out(runs, baseline)
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
     published = " beside the paper's Table 1 (2M steps, 4M on Ant, 10 seeds)" if paper else ""
     aggregate_lines, normalized = aggregates(runs, baseline)
@@ -115,9 +155,8 @@ def report(
         aggregate_lines,
     ]  # fmt: skip
     if beside_names:
-        other, _, _, others = collect(beside_names, storage)
-        labels = tuple("/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in cs}))
-                       for cs in (campaigns, others))  # fmt: skip
+        other, _, _, others = read(beside_names, storage, cache)
+        labels = (protocol_label(campaigns), protocol_label(others))
         sections += [[f"Beside campaigns {', '.join(beside_names)} ({labels[1]}): each variant's ratio to {baseline}'s "
                       f"mean max average return (runs of both in brackets) in the {labels[0]}, the {labels[1]} and the "
                       "paper's Table 1:"],

@@ -273,16 +273,22 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else np.nan
 
 
+def per_step(variant_runs: list[dict[str, Any]], base_runs: list[dict[str, Any]]) -> float:
+    """The variant's mean max average return over the baseline's (nan where either has no run or the baseline's mean
+    is not positive)."""
+    base = _mean([r["max_average_return"] for r in base_runs])
+    return _mean([r["max_average_return"] for r in variant_runs]) / base if base > 0 else np.nan
+
+
 def against_baseline(variant_runs: list[dict[str, Any]], base_runs: list[dict[str, Any]]) -> dict[str, float]:
     """The variant's runs over the baseline's on one task: ``per_step`` (mean max average return over the baseline's
     mean), ``cpu_speed`` and ``wall_speed`` (mean of each run's steps per CPU- and wall-second over the baseline's mean
     on its machine), ``at_cpu`` (mean best return within the baseline's mean CPU time, over the baseline's own, nan
     where not positive) and ``minutes`` (its mean CPU minutes per run)."""
-    base = _mean([r["max_average_return"] for r in base_runs])
     base_best = _mean([at_baseline_cpu(r, base_runs) for r in base_runs])
     best = _mean([at_baseline_cpu(r, base_runs) for r in variant_runs])
     return {
-        "per_step": _mean([r["max_average_return"] for r in variant_runs]) / base if base > 0 else np.nan,
+        "per_step": per_step(variant_runs, base_runs),
         "cpu_speed": _mean([speed_ratio(r, base_runs, "steps_per_cpu_second") for r in variant_runs]),
         "wall_speed": _mean([speed_ratio(r, base_runs, "steps_per_wall_second") for r in variant_runs]),
         "at_cpu": best / base_best if np.isfinite(best) and base_best > 0 else np.nan,
@@ -323,11 +329,13 @@ def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, 
     seeds, runs in brackets), the variant's ratios to the baseline per env step, at the baseline's CPU time and in
     steps per CPU-second; per env step in ``other`` runs (another protocol's, ``label``) and in the paper's Table 1
     where it has the variant."""
+    tasks = table1_order(runs, other or {})
+    published = any(variant in PAPER_TABLE1.get(t, {}) for t in tasks)
     head = [baseline, variant, "per step", f"at {baseline}'s CPU time", "speed"]
     head += [f"{label}, per step"] if other is not None else []
-    head += ["the paper, per step"] if any(variant in PAPER_TABLE1.get(t, {}) for t in runs) else []
+    head += ["the paper, per step"] if published else []
     lines = ["| task | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
-    for task in table1_order(runs, other or {}):
+    for task in tasks:
         by_variant = runs.get(task, {})
         base_runs, variant_runs = by_variant.get(baseline, []), by_variant.get(variant, [])
         cells = [_cell(np.array([r["max_average_return"] for r in rs])) if rs else "—" for rs in (base_runs, variant_runs)]
@@ -338,12 +346,10 @@ def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, 
             cells += ["—"] * 3
         if other is not None:
             theirs = other.get(task, {})
-            both = theirs.get(baseline) and theirs.get(variant)
-            cells.append(_times(against_baseline(theirs[variant], theirs[baseline])["per_step"]) if both else "—")
-        if len(head) > len(cells):
-            published = PAPER_TABLE1.get(task, {})
-            cells.append(_times(published[variant][0] / published[baseline][0]) if {variant, baseline} <= set(published)
-                         else "—")  # fmt: skip
+            cells.append(_times(per_step(theirs.get(variant, []), theirs.get(baseline, []))))
+        if published:
+            paper = PAPER_TABLE1.get(task, {})
+            cells.append(_times(paper[variant][0] / paper[baseline][0]) if {variant, baseline} <= set(paper) else "—")
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
     return lines
 
