@@ -430,9 +430,18 @@ def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment
     at_150 = [i for i in model.history.policy_ids if model.history.record_info(i)["num_timesteps"] <= 150]
     assert 1 < len(at_150) < len(model.history.policy_ids)
     checkpoint = SACPeVFA.load(tmp_path / "rl_model_150_steps.zip")
-    checkpoint.load_replay_buffer(tmp_path / "replay_buffer")  # what rl-zoo3's -i does
+    with pytest.warns(UserWarning, match="saved with the checkpoint at 150 steps: .*rl_model_replay_buffer_150") as caught:
+        checkpoint.load_replay_buffer(tmp_path / "replay_buffer")  # what rl-zoo3's -i does
+    assert [w.filename for w in caught] == [__file__]  # said at the user's call, whatever the verbosity
     # SB3 calls the callback before it stores the step's transition: 149 of them at the checkpoint
     assert checkpoint.replay_buffer.size() == 149 and checkpoint.history.policy_ids == at_150
+    # another run's checkpoint of the same step in the folder: which one is this model's is not known, none is guessed
+    other = tmp_path / "other_replay_buffer_150_steps.pkl"
+    other.write_bytes((tmp_path / "rl_model_replay_buffer_150_steps.pkl").read_bytes())
+    with pytest.warns(UserWarning, match="Several checkpoints .* saved at 150 steps"):
+        checkpoint.load_replay_buffer(tmp_path / "replay_buffer")
+    assert checkpoint.replay_buffer.size() == 300  # the asked file (its snapshots warn that they come from after it)
+    other.unlink()
     fresh = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=20, **tiny())
     fresh.num_timesteps = 300  # the final model, whose step is also a checkpoint's: its own buffer, not the checkpoint's
     fresh.load_replay_buffer(tmp_path / "replay_buffer")

@@ -429,9 +429,36 @@ def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[8]))
     with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # a PeVFA argument of load's
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16]), embedding_dim=4)
+    with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # alone, not kept unread
+        cls.load(tmp_path / "model.zip", representation="opr")
+    assert cls.load(tmp_path / "model.zip", representation="random", embedding_dim=8).policy_kwargs == model.policy_kwargs
     if cls is PPOPeVFA:  # the critic's entries a constructor would have added by default are not the stored ones
         other = cls("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
         other.save(tmp_path / "other")
         with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):
             cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16]))
         assert cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
+
+
+@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "sac_pevfa", "td3_pevfa"])
+def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refuses(tmp_path, algorithm):
+    """A clear error at load, before anything trains: a file of another algorithm (or SB3's own class) names the
+    policy it needs; the arguments given to load are checked as the constructor checks them."""
+    from stable_baselines3 import PPO, SAC, TD3
+
+    from sb3_pevfa import SACPeVFA, TD3PeVFA
+
+    cls, sb3, bad, message = {
+        "ppo_pevfa": (PPOPeVFA, PPO, dict(history_train_freq=-1), "history_train_freq must be an int >= 0"),
+        "sac_pevfa": (SACPeVFA, SAC, dict(snapshot_freq=2.5), "snapshot_freq must be an int >= 1"),
+        "td3_pevfa": (TD3PeVFA, TD3, dict(history_batch_size=500), "must be a multiple of history_batch_policies"),
+    }[algorithm]
+    for other in {PPOPeVFA, SACPeVFA, TD3PeVFA, sb3} - {cls}:
+        other("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16])).save(tmp_path / other.__name__)
+        with pytest.raises(TypeError, match=rf"{cls.__name__} needs (a|its) PeVFA policy .* got <class '.*"):
+            cls.load(tmp_path / other.__name__)
+    cls("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16])).save(tmp_path / "mine")
+    with pytest.raises(ValueError, match=message):
+        cls.load(tmp_path / "mine", **bad)
+    with pytest.raises((ValueError, TypeError), match="flush_denormal must be a bool"):
+        cls.load(tmp_path / "mine", flush_denormal=1)

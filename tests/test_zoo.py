@@ -300,6 +300,26 @@ def test_zoo_checkpoints_keep_the_history_of_their_moment(zoo_run):
     np.testing.assert_array_equal(model.history.samples()[0][:256], saved.samples()[0])
 
 
+@pytest.mark.parametrize(
+    "given",
+    [["--conf-file", "mine.yml"], ["--conf-file=mine.yml"], ["--conf", "mine.yml"], ["-conf=mine.yml"], []],
+)
+def test_the_users_conf_file_in_any_form_rl_zoo3_reads_wins_and_our_flag_is_read_in_both(given, monkeypatch):
+    """What reaches rl-zoo3's parser: the user's --conf-file however written (else the shipped file), and
+    --search-space, ours, removed (train only: enjoy's parser has no such flag to hide)."""
+    from sb3_pevfa.rl_zoo import hyperparams_opt, run_zoo_script
+
+    seen = []
+    monkeypatch.setattr(sys, "argv", ["train"])
+    monkeypatch.setitem(hyperparams_opt.SEARCH_SPACE, "name", "full")
+    run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", *given, "--search-space=small"], True)
+    shipped = ["--conf-file", str(HYPERPARAMS_PATHS["sac_pevfa"])]
+    assert seen[0] == ["--algo", "sac_pevfa", *given, *(shipped if not given else [])]
+    assert hyperparams_opt.SEARCH_SPACE["name"] == "small"
+    run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--search-space", "small"], False)
+    assert seen[1] == ["--algo", "sac_pevfa", "--search-space", "small"]  # enjoy: rl-zoo3 says it is unknown
+
+
 def test_help_shows_our_flag_and_the_python_way_of_the_docs_works(tmp_path):
     assert "--search-space {full,small}" in _run("-m", "sb3_pevfa.train", "--help", cwd=tmp_path)
     # docs/zoo.md: register, then rl-zoo3's own train() with the shipped hyperparameters as --conf-file

@@ -40,8 +40,13 @@ class ModelFile:
             on (with the model's history or replay buffer, and seeded environments) continues bit for bit as the
             saved run would have
         """
+        custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
+        if kwargs.get("policy_kwargs") is None and any(name in kwargs for name in cls.added_policy_kwargs):
+            # a policy's argument given to load: the stored policy_kwargs with it (completed below), which SB3 then
+            # checks against the file's, rather than keep it as an attribute that nothing reads
+            stored = cls._stored_policy_kwargs(path, custom_objects)
+            kwargs["policy_kwargs"] = {k: v for k, v in stored.items() if k not in cls.added_policy_kwargs}
         if kwargs.get("policy_kwargs") is not None:
-            custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
             kwargs["policy_kwargs"] = cls._completed_policy_kwargs(path, kwargs["policy_kwargs"], kwargs, custom_objects)
         model = super().load(path, *args, **kwargs)  # type: ignore[misc]
         rng_states = model.__dict__.pop("_rng_states", None)
@@ -52,14 +57,19 @@ class ModelFile:
             np.random.set_state(rng_states["numpy"])
         return model
 
+    @staticmethod
+    def _stored_policy_kwargs(path: Any, custom_objects: dict[str, Any] | None) -> dict[str, Any]:
+        """The ``policy_kwargs`` stored in the model file ``path``."""
+        if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
+            path = f"{path}.zip"  # as SB3 looks for it
+        with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
+            return json_to_data(archive.read("data").decode(), custom_objects=custom_objects).get("policy_kwargs") or {}
+
     @classmethod
     def _completed_policy_kwargs(
         cls, path: Any, given: dict[str, Any], kwargs: dict[str, Any], custom_objects: dict[str, Any] | None
     ) -> dict[str, Any]:
-        if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
-            path = f"{path}.zip"  # as SB3 looks for it
-        with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
-            stored = json_to_data(archive.read("data").decode(), custom_objects=custom_objects).get("policy_kwargs") or {}
+        stored = cls._stored_policy_kwargs(path, custom_objects)
         added = {
             name: kwargs.get(name, stored.get(name)) for name in cls.added_policy_kwargs if name in kwargs or name in stored
         }

@@ -16,6 +16,7 @@ One iteration, as :meth:`PeVFAAlgorithm.train` reads:
    (``"critic_first"``, the authors' order).
 """
 
+import inspect
 import io
 import math
 import pathlib
@@ -86,12 +87,24 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         self._objective_credit: dict[str, int] = {}
         self._rollout_episode_returns: list[float] = []
 
+    def _pevfa_arguments(self) -> dict[str, Any]:
+        """The PeVFA arguments as the model holds them: the constructor's, or those ``load`` set on it (the policy's
+        from ``policy_kwargs``; the constructor's defaults where a file saved by an earlier version lacks one)."""
+        defaults = {
+            name: parameter.default
+            for name, parameter in inspect.signature(type(self).__init__).parameters.items()
+            if name in PEVFA_ARGUMENTS
+        }
+        held = {name: self.policy_kwargs[name] for name in ADDED_POLICY_KWARGS if name in self.policy_kwargs}
+        return {**defaults, **held, **{name: vars(self)[name] for name in PEVFA_ARGUMENTS if name in vars(self)}}
+
     def _setup_model(self) -> None:
         if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):
             raise TypeError(
                 f"{type(self).__name__} needs a PeVFA policy (one of {sorted(self.policy_aliases)} or a subclass of "
                 f"PeVFAActorCriticPolicy), got {self.policy_class}"
             )
+        validate_arguments(self._pevfa_arguments())  # again: load() sets its keyword arguments on the model before this
         if self.rollout_buffer_class is None:
             dict_obs = isinstance(self.observation_space, spaces.Dict)
             self.rollout_buffer_class = PeVFADictRolloutBuffer if dict_obs else PeVFARolloutBuffer
@@ -553,7 +566,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
 
         :param truncate_last_traj: Ignored (a HER replay buffer option of SB3)
         """
-        self.load_history(path_of_the_moment(path, self.num_timesteps, self.verbose))
+        self.load_history(path_of_the_moment(path, self.num_timesteps))
 
     @classmethod
     def load(  # type: ignore[override]

@@ -50,18 +50,18 @@ def checkpoint_history(model_path: str | pathlib.Path) -> pathlib.Path | None:
     return history if history.exists() else None
 
 
-def history_of_the_moment(directory: pathlib.Path, num_timesteps: int) -> pathlib.Path | None:
-    """A checkpoint history in ``directory`` saved at ``num_timesteps`` (the moment of a model loaded from it)."""
-    matches = sorted(directory.glob(f"*_replay_buffer_{num_timesteps}_steps.pkl"))
-    return matches[0] if matches else None
+def histories_of_the_moment(directory: pathlib.Path, num_timesteps: int) -> list[pathlib.Path]:
+    """The checkpoint histories in ``directory`` saved at ``num_timesteps`` (the moment of a model loaded from one of
+    them), of any run's prefix."""
+    return sorted(directory.glob(f"*_replay_buffer_{num_timesteps}_steps.pkl"))
 
 
-def path_of_the_moment(
-    path: Any, num_timesteps: int, verbose: int = 0, what: str = "the history", history_of: Any = None
-) -> Any:
+def path_of_the_moment(path: Any, num_timesteps: int, what: str = "the history", history_of: Any = None) -> Any:
     """What to load for a model at ``num_timesteps`` that asks for ``path``: rl-zoo3's ``-i`` asks for the run's final
     ``replay_buffer.pkl`` also for a checkpoint, so where that file holds policies recorded after the model, and SB3's
-    ``CheckpointCallback`` saved one beside it at ``num_timesteps``, that one; else ``path``.
+    ``CheckpointCallback`` saved one beside it at ``num_timesteps``, that one, with a warning that names it; else
+    ``path`` (also where several runs' checkpoints in that folder were saved at that step: which one is this model's
+    is not known, and the asked file's history then warns that it comes from after the model).
 
     :param history_of: The history file saved with a file to load (default: the file itself)
     """
@@ -69,17 +69,28 @@ def path_of_the_moment(
         return path
     asked = pathlib.Path(path)
     asked = asked if asked.suffix == ".pkl" else asked.with_name(asked.name + ".pkl")  # SB3 adds .pkl where missing
-    moment = history_of_the_moment(asked.parent, num_timesteps)
-    if moment is None:
+    moments = histories_of_the_moment(asked.parent, num_timesteps)
+    if not moments:
         return path
-    if moment == asked:  # the checkpoint's own file, under the name it was saved with
-        return moment
+    if asked in moments:  # the checkpoint's own file, under the name it was saved with
+        return asked
     latest = latest_recorded((history_of or (lambda file: file))(asked))
     if latest is not None and latest <= num_timesteps:  # the asked file is of the model's moment (or before it)
         return path
-    if verbose:
-        print(f"Loading {what} saved with the checkpoint at {num_timesteps} steps: {moment}")
-    return moment
+    if len(moments) > 1:
+        names = ", ".join(m.name for m in moments)
+        warnings.warn(
+            f"Several checkpoints in {asked.parent} were saved at {num_timesteps} steps ({names}): {asked} is loaded as "
+            f"asked; to go on from a checkpoint, load {what} saved with it by its name",
+            stacklevel=_user_stacklevel(),
+        )
+        return path
+    warnings.warn(
+        f"Loading {what} saved with the checkpoint at {num_timesteps} steps: {moments[0]} ({asked} holds policies "
+        "recorded after this model)",
+        stacklevel=_user_stacklevel(),
+    )
+    return moments[0]
 
 
 def warn_if_newer(history: PolicyHistory, num_timesteps: int, path: Any) -> None:

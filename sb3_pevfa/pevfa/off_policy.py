@@ -116,19 +116,32 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         arguments = dict(locals())
         policy_kwargs = off_policy_kwargs(policy_kwargs, arguments)
         super().__init__(policy, env, policy_kwargs=policy_kwargs, _init_setup_model=False, **kwargs)
-        check_snapshot_arguments(arguments)
-        for name in SNAPSHOT_ARGUMENTS:
-            setattr(self, name, int(arguments[name]))
-        for name in ("live_encoder_gradient", "flush_denormal"):
-            if not isinstance(arguments[name], bool):
-                raise ValueError(f"{name} must be a bool, got {arguments[name]!r}")
-        self.live_encoder_gradient, self.flush_denormal = live_encoder_gradient, flush_denormal
+        for name in (*SNAPSHOT_ARGUMENTS, "live_encoder_gradient", "flush_denormal"):
+            setattr(self, name, arguments[name])
+        self._check_arguments()
         self._history_credit = 0
         self._snapshot_episodes = 0  # SB3's episode count at the latest snapshot
         if _init_setup_model:
             self._setup_model()
 
+    def _check_arguments(self) -> None:
+        """The snapshot arguments and the flags as the model holds them (given to the constructor, or to ``load``):
+        a ValueError names the first bad one."""
+        check_snapshot_arguments({name: getattr(self, name) for name in SNAPSHOT_ARGUMENTS})
+        for name in SNAPSHOT_ARGUMENTS:
+            setattr(self, name, int(getattr(self, name)))
+        for name in ("live_encoder_gradient", "flush_denormal"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+
     def _setup_model(self) -> None:
+        policy_base = self.policy_aliases["MlpPolicy"]  # the algorithm's PeVFA policy class
+        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, policy_base)):
+            raise TypeError(
+                f"{type(self).__name__} needs its PeVFA policy (one of {sorted(self.policy_aliases)} or a subclass of "
+                f"{policy_base.__name__}), got {self.policy_class}"
+            )
+        self._check_arguments()  # again: load() sets its keyword arguments on the model before this
         super()._setup_model()
         critic = self.policy.critic
         for module in (critic, self.policy.critic_target):
@@ -307,7 +320,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         Where either fails, the model keeps its own. rl-zoo3 asks for the run's final ``replay_buffer.pkl`` also for a
         checkpoint: a replay buffer saved beside it at this model's ``num_timesteps`` (SB3's ``CheckpointCallback``
         with ``save_replay_buffer=True``) is loaded instead; snapshots from after it load with a warning."""
-        path = path_of_the_moment(path, self.num_timesteps, self.verbose, "the replay buffer and snapshots", snapshots_path)
+        path = path_of_the_moment(path, self.num_timesteps, "the replay buffer and snapshots", snapshots_path)
         previous = self.replay_buffer
         super().load_replay_buffer(path, truncate_last_traj)
         if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():

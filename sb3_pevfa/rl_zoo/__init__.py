@@ -38,29 +38,32 @@ def register() -> None:
 def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, default_config: bool = False) -> None:
     """Run an rl-zoo3 command-line function with ``ppo_pevfa`` registered and rl-zoo3's flags unchanged.
 
-    :param default_config: Add ``--conf-file`` pointing at the shipped hyperparameters when a PeVFA algorithm
+    :param default_config: Training: add ``--conf-file`` pointing at the shipped hyperparameters when a PeVFA algorithm
         (``--algo ppo_pevfa``, ``a2c_pevfa``, ``sac_pevfa``, ``td3_pevfa``) is trained without one (a user's
-        ``--conf-file`` wins)
+        ``--conf-file`` or ``-conf``, in any form rl-zoo3's parser reads, wins), and read the package's
+        ``--search-space`` flag (``--search-space small`` or ``--search-space=small``)
     """
     from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE
 
     register()
-    parser = argparse.ArgumentParser(add_help=False)
-    parser.add_argument("--search-space", choices=["full", "small"], default="full")
-    parser.add_argument("--algo", default=None)
-    ours, _ = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
-    args = [arg for arg in (sys.argv[1:] if argv is None else argv)]
-    if "--search-space" in args:
-        index = args.index("--search-space")
-        del args[index : index + 2]
-    SEARCH_SPACE["name"] = ours.search_space
-    if {"-h", "--help"} & set(args):  # rl-zoo3's help follows and exits; our flag first
-        print(
-            "sb3-pevfa adds to rl-zoo3's flags:\n  --search-space {full,small}\n"
-            "                        PeVFA search space of -optimize: 'full' (default) or 'small' (a tiny one for tests)\n"
-            f"  (--algo {' / '.join(ALGORITHMS)} read {HYPERPARAMS_PATHS[ALGO_NAME].parent} unless --conf-file is given)\n"
-        )
-    if default_config and ours.algo in HYPERPARAMS_PATHS and not {"--conf-file", "-conf"} & set(args):
-        args += ["--conf-file", str(HYPERPARAMS_PATHS[ours.algo])]
+    args = list(sys.argv[1:] if argv is None else argv)
+    # what rl-zoo3's parser would read: its own flags, abbreviations and "--flag=value" included
+    zoo = argparse.ArgumentParser(add_help=False)
+    zoo.add_argument("--algo", default=None)
+    zoo.add_argument("-conf", "--conf-file", dest="conf_file", default=None)
+    given, _ = zoo.parse_known_args(args)
+    if default_config:
+        ours = argparse.ArgumentParser(prog="sb3_pevfa.train", add_help=False, allow_abbrev=False)  # a flag rl-zoo3 lacks
+        ours.add_argument("--search-space", choices=["full", "small"], default="full")
+        search, args = ours.parse_known_args(args)
+        SEARCH_SPACE["name"] = search.search_space
+        if {"-h", "--help"} & set(args):  # rl-zoo3's help follows and exits; our flag first
+            print(
+                "sb3-pevfa adds to rl-zoo3's flags:\n  --search-space {full,small}\n"
+                "                        PeVFA search space of -optimize: 'full' (default) or 'small' (a tiny one for tests)\n"
+                f"  (--algo {' / '.join(ALGORITHMS)} read {HYPERPARAMS_PATHS[ALGO_NAME].parent} unless --conf-file is given)\n"
+            )
+        if given.algo in HYPERPARAMS_PATHS and given.conf_file is None:
+            args += ["--conf-file", str(HYPERPARAMS_PATHS[given.algo])]
     sys.argv = [sys.argv[0], *args]
     script()
