@@ -299,6 +299,12 @@ def test_bad_arguments_are_refused_at_construction(kwargs, message):
         SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs)
 
 
+@pytest.mark.parametrize(("pevfa_class", "base"), [(SACPeVFA, "SAC"), (TD3PeVFA, "TD3")])
+def test_sb3s_positional_learning_rate_is_told_to_come_by_keyword(pevfa_class, base):
+    with pytest.raises(TypeError, match=rf"got 0.0003: after the env come the PeVFA arguments; pass {base}'s own"):
+        pevfa_class("MlpPolicy", "Pendulum-v1", 3e-4)
+
+
 def test_several_envs_under_vecnormalize():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize

@@ -24,6 +24,7 @@ from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
+from sb3_pevfa.pevfa.q_critics import OFF_POLICY_REPRESENTATIONS
 from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
 
 #: The snapshot arguments of an off-policy PeVFA algorithm's constructor
@@ -113,6 +114,12 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         **kwargs: Any,
     ):
         """The PeVFA arguments (see the algorithm's docstring); the rest are the SB3 base's, by keyword."""
+        if not isinstance(representation, str):  # SB3's third positional argument is its learning rate
+            base = next(c.__name__ for c in type(self).__mro__ if c.__module__.startswith("stable_baselines3"))
+            raise TypeError(
+                f"representation must be one of {OFF_POLICY_REPRESENTATIONS}, got {representation!r}: after the env come "
+                f"the PeVFA arguments; pass {base}'s own (learning_rate, ...) by keyword"
+            )
         arguments = dict(locals())
         policy_kwargs = off_policy_kwargs(policy_kwargs, arguments)
         super().__init__(policy, env, policy_kwargs=policy_kwargs, _init_setup_model=False, **kwargs)

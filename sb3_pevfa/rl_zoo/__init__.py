@@ -19,6 +19,14 @@ HYPERPARAMS_PATHS = {
     name: pathlib.Path(__file__).resolve().parent.parent / "hyperparams" / f"{name}.yml" for name in ALGORITHMS
 }
 HYPERPARAMS_PATH = HYPERPARAMS_PATHS[ALGO_NAME]
+#: rl-zoo3's entries that the shipped hyperparameters leave out, because the algorithm refuses them: why
+LEFT_OUT = {
+    "sac_pevfa": dict.fromkeys(
+        ("MountainCarContinuous-v0", "BipedalWalker-v3", "CarRacing-v3"),
+        "rl-zoo3's SAC entry explores with gSDE (use_sde=True), which SACPeVFA does not take (its snapshots are actors "
+        "of linear layers)",
+    ),
+}
 
 
 def register() -> None:
@@ -51,6 +59,7 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
     zoo = argparse.ArgumentParser(add_help=False)
     zoo.add_argument("--algo", default=None)
     zoo.add_argument("-conf", "--conf-file", dest="conf_file", default=None)
+    zoo.add_argument("--env", default=None)
     given, _ = zoo.parse_known_args(args)
     if default_config:
         ours = argparse.ArgumentParser(prog="sb3_pevfa.train", add_help=False, allow_abbrev=False)  # a flag rl-zoo3 lacks
@@ -64,6 +73,10 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
                 f"  (--algo {' / '.join(ALGORITHMS)} read {HYPERPARAMS_PATHS[ALGO_NAME].parent} unless --conf-file is given)\n"
             )
         if given.algo in HYPERPARAMS_PATHS and given.conf_file is None:
+            why = LEFT_OUT.get(given.algo, {}).get(given.env)
+            if why is not None:
+                raise SystemExit(f"No shipped {given.algo} hyperparameters for {given.env}: {why}. Give an entry of your "
+                                 "own with --conf-file.")  # fmt: skip
             args += ["--conf-file", str(HYPERPARAMS_PATHS[given.algo])]
     sys.argv = [sys.argv[0], *args]
     script()
