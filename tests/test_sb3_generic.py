@@ -429,8 +429,8 @@ def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[8]))
     with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # a PeVFA argument of load's
         cls.load(tmp_path / "model.zip", policy_kwargs=dict(net_arch=[16, 16]), embedding_dim=4)
-    with pytest.raises(ValueError, match="policy kwargs do not equal the stored"):  # alone, not kept unread
-        cls.load(tmp_path / "model.zip", representation="opr")
+    with pytest.raises(ValueError, match="load got representation='opr', the file's policy was built with 'random'"):
+        cls.load(tmp_path / "model.zip", representation="opr")  # alone (rl-zoo3's -i), not kept unread
     assert cls.load(tmp_path / "model.zip", representation="random", embedding_dim=8).policy_kwargs == model.policy_kwargs
     if cls is PPOPeVFA:  # the critic's entries a constructor would have added by default are not the stored ones
         other = cls("MlpPolicy", env_id, policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
@@ -455,8 +455,9 @@ def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refus
     }[algorithm]
     for other in {PPOPeVFA, SACPeVFA, TD3PeVFA, sb3} - {cls}:
         other("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16])).save(tmp_path / other.__name__)
-        with pytest.raises(TypeError, match=rf"{cls.__name__} needs (a|its) PeVFA policy .* got <class '.*"):
-            cls.load(tmp_path / other.__name__)
+        for entry in ({}, dict(representation="opr", embedding_dim=64)):  # rl-zoo3's -i passes its entry's arguments
+            with pytest.raises(TypeError, match=rf"{cls.__name__} needs (a|its) PeVFA policy .* got <class '.*"):
+                cls.load(tmp_path / other.__name__, **entry)
     cls("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16])).save(tmp_path / "mine")
     with pytest.raises(ValueError, match=message):
         cls.load(tmp_path / "mine", **bad)

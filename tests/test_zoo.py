@@ -324,6 +324,8 @@ def test_the_users_conf_file_in_any_form_rl_zoo3_reads_wins_and_our_flag_is_read
     # an entry left out of the shipped file: why, rather than rl-zoo3's "Hyperparameters not found"
     with pytest.raises(SystemExit, match=r"SAC entry explores with gSDE .* Give an entry of your own with --conf-file"):
         run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--env", "BipedalWalker-v3"], True)
+    with pytest.raises(SystemExit, match="No shipped sac_pevfa hyperparameters for MountainCarContinuous-v0"):
+        run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo=sac_pevfa", "--env=MountainCarContinuous-v0"], True)
     run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "td3_pevfa", "--env", "BipedalWalker-v3"], True)
     if given:  # with an entry of the user's, it runs
         run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--env", "BipedalWalker-v3", *given], True)

@@ -41,11 +41,9 @@ class ModelFile:
             saved run would have
         """
         custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
-        if kwargs.get("policy_kwargs") is None and any(name in kwargs for name in cls.added_policy_kwargs):
-            # a policy's argument given to load: the stored policy_kwargs with it (completed below), which SB3 then
-            # checks against the file's, rather than keep it as an attribute that nothing reads
-            stored = cls._stored_policy_kwargs(path, custom_objects)
-            kwargs["policy_kwargs"] = {k: v for k, v in stored.items() if k not in cls.added_policy_kwargs}
+        given = {name: kwargs[name] for name in cls.added_policy_kwargs if name in kwargs}
+        if given and kwargs.get("policy_kwargs") is None:
+            cls._check_policy_arguments(path, given, custom_objects)
         if kwargs.get("policy_kwargs") is not None:
             kwargs["policy_kwargs"] = cls._completed_policy_kwargs(path, kwargs["policy_kwargs"], kwargs, custom_objects)
         model = super().load(path, *args, **kwargs)  # type: ignore[misc]
@@ -56,6 +54,20 @@ class ModelFile:
             th.set_rng_state(rng_states["torch"])
             np.random.set_state(rng_states["numpy"])
         return model
+
+    @classmethod
+    def _check_policy_arguments(cls, path: Any, given: dict[str, Any], custom_objects: dict[str, Any] | None) -> None:
+        """A ValueError where a policy argument given to ``load`` (``representation``, ...; rl-zoo3's ``-i`` passes its
+        entry's) differs from the file's: the model keeps the policy it was saved with, so the argument would be kept
+        unread. Files without them (SB3's own) are left to the class's check of its policy."""
+        stored = cls._stored_policy_kwargs(path, custom_objects)
+        for name, value in given.items():
+            if name in stored and value != stored[name]:
+                raise ValueError(
+                    f"load got {name}={value!r}, the file's policy was built with {stored[name]!r}: a model keeps the "
+                    f"policy it was saved with (with rl-zoo3's -i, which passes its hyperparameters' {name}, give the "
+                    f"file's with -params {name}:{stored[name]!r})"
+                )
 
     @staticmethod
     def _stored_policy_kwargs(path: Any, custom_objects: dict[str, Any] | None) -> dict[str, Any]:
