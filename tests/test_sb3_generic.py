@@ -440,20 +440,21 @@ def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
         assert cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
 
 
-@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "sac_pevfa", "td3_pevfa"])
+@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "a2c_pevfa", "sac_pevfa", "td3_pevfa"])
 def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refuses(tmp_path, algorithm):
     """A clear error at load, before anything trains: a file of another algorithm (or SB3's own class) names the
     policy it needs; the arguments given to load are checked as the constructor checks them."""
-    from stable_baselines3 import PPO, SAC, TD3
+    from stable_baselines3 import A2C, PPO, SAC, TD3
 
-    from sb3_pevfa import SACPeVFA, TD3PeVFA
+    from sb3_pevfa import A2CPeVFA, SACPeVFA, TD3PeVFA
 
     cls, sb3, bad, message = {
         "ppo_pevfa": (PPOPeVFA, PPO, dict(history_train_freq=-1), "history_train_freq must be an int >= 0"),
+        "a2c_pevfa": (A2CPeVFA, A2C, dict(history_batch_size=0), "history_batch_size must be a positive int"),
         "sac_pevfa": (SACPeVFA, SAC, dict(snapshot_freq=2.5), "snapshot_freq must be an int >= 1"),
         "td3_pevfa": (TD3PeVFA, TD3, dict(history_batch_size=500), "must be a multiple of history_batch_policies"),
     }[algorithm]
-    for other in {PPOPeVFA, SACPeVFA, TD3PeVFA, sb3} - {cls}:
+    for other in {PPOPeVFA, SACPeVFA, TD3PeVFA, sb3} - {cls, PPOPeVFA if cls is A2CPeVFA else None}:  # one policy
         other("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16])).save(tmp_path / other.__name__)
         for entry in ({}, dict(representation="opr", embedding_dim=64)):  # rl-zoo3's -i passes its entry's arguments
             with pytest.raises(TypeError, match=rf"{cls.__name__} needs (a|its) PeVFA policy .* got <class '.*"):
