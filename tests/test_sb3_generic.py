@@ -464,3 +464,6 @@ def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refus
         cls.load(tmp_path / "mine", **bad)
     with pytest.raises((ValueError, TypeError), match="flush_denormal must be a bool"):
         cls.load(tmp_path / "mine", flush_denormal=1)
+    if cls is PPOPeVFA:  # its own argument too
+        with pytest.raises(ValueError, match="actor_batch_size must be None, an int > 1 or 'full', got 0"):
+            cls.load(tmp_path / "mine", actor_batch_size=0)

@@ -182,14 +182,23 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
                 _init_setup_model=False,
             )
         self._init_pevfa(env, pevfa)
-        valid_int = isinstance(actor_batch_size, int) and not isinstance(actor_batch_size, bool) and actor_batch_size > 1
-        if not (actor_batch_size is None or actor_batch_size == "full" or valid_int):
-            raise ValueError(f"actor_batch_size must be None, an int > 1 or 'full', got {actor_batch_size!r}")
-        if actor_batch_size is not None and update_order != "critic_first":
-            raise ValueError("actor_batch_size is the actor's own minibatch size of update_order='critic_first'")
         self.actor_batch_size = actor_batch_size
+        self._check_actor_batch_size()
         if _init_setup_model:
             self._setup_model()
+
+    def _check_actor_batch_size(self) -> None:
+        """``actor_batch_size`` as the model holds it (given to the constructor, or to ``load``)."""
+        size = self.actor_batch_size
+        valid_int = isinstance(size, int) and not isinstance(size, bool) and size > 1
+        if not (size is None or size == "full" or valid_int):
+            raise ValueError(f"actor_batch_size must be None, an int > 1 or 'full', got {size!r}")
+        if size is not None and self.update_order != "critic_first":
+            raise ValueError("actor_batch_size is the actor's own minibatch size of update_order='critic_first'")
+
+    def _setup_model(self) -> None:
+        self._check_actor_batch_size()  # again: load() sets its keyword arguments on the model before this
+        super()._setup_model()
 
     def _rollout_critic_schedule(self) -> tuple[int, int]:
         return self.n_epochs, self.batch_size

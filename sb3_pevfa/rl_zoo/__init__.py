@@ -22,7 +22,7 @@ HYPERPARAMS_PATH = HYPERPARAMS_PATHS[ALGO_NAME]
 #: rl-zoo3's entries that the shipped hyperparameters leave out, because the algorithm refuses them: why
 LEFT_OUT = {
     "sac_pevfa": dict.fromkeys(
-        ("MountainCarContinuous-v0", "BipedalWalker-v3", "CarRacing-v3"),
+        ("MountainCarContinuous-v0", "BipedalWalker-v3", "CarRacing-v3", "NeckEnvRelative-v2", "donkey-generated-track-v0"),
         "rl-zoo3's SAC entry explores with gSDE (use_sde=True), which SACPeVFA does not take (its snapshots are actors "
         "of linear layers)",
     ),

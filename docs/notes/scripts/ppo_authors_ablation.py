@@ -5,8 +5,8 @@ Each variant is the authors'-protocol PPO (``sb3_pevfa.protocols.authors_protoco
 trained by the campaign engine's own ``train`` (the same envs, seeds and evaluations as the grid ``table1-authors``):
 
 - ``std``: SB3's log-std (initial 0, the actor's learning rate) in place of theirs (initial -0.5, 6.5x the rate);
-- ``minibatch``: the actor in minibatches of the critic's size (about 15 per epoch, 10 epochs) in place of 10
-  full-batch steps;
+- ``minibatch``: the actor in minibatches of 128 (the protocol's ``batch_size``), 10 epochs, in place of 10 full-batch
+  steps;
 - ``std+minibatch``: both;
 - ``deterministic-eval``: unchanged training, evaluated with the deterministic policy (the paper protocol's
   evaluation) in place of sampled actions (its evaluations draw no random numbers, so its training differs from the
@@ -73,7 +73,7 @@ def report(out: pathlib.Path, task: str, checkpoints: tuple[int, ...] = (100_000
             best = {seed: best_by(run["curve"], c) for seed, run in runs.items()}
             each = ", ".join(f"{best[s]:.0f}" if s in best else "—" for s in seeds)
             cells.append(f"{np.mean(list(best.values())):.0f} ({each})")
-        cpu = np.mean([run["cpu_seconds"] / run.get("timesteps", 1) * 100_000 / 60 for run in runs.values()])
+        cpu = np.mean([run["cpu_seconds"] / run["timesteps"] * 100_000 / 60 for run in runs.values()])
         print(f"| {label} | " + " | ".join(cells) + f" | {cpu:.1f} |")
 
 
