@@ -324,7 +324,7 @@ def speed(runs: Runs, baseline: str) -> list[str]:
     return lines
 
 
-def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, label: str = "") -> list[str]:
+def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, label: str = "other protocol") -> list[str]:
     """A results page's table: per task the baseline's and the variant's max average return (mean ± half std over
     seeds, runs in brackets), the variant's ratios to the baseline per env step, at the baseline's CPU time and in
     steps per CPU-second; per env step in ``other`` runs (another protocol's, ``label``) and in the paper's Table 1

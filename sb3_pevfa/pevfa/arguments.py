@@ -51,7 +51,6 @@ PEVFA_ARGUMENTS = (
 #: The paper's schedule of the historical critic updates (App. F.1: 64 uniform samples per 10 environment steps) and
 #: its end-to-end encoder, which PPOPeVFA's defaults trade for a cheaper one: ``PPOPeVFA(..., **PAPER_SCHEDULE)``
 PAPER_SCHEDULE = dict(history_batch_size=64, history_batch_policies=None, history_train_freq=10, rollout_encoder_gradient=True)
-#: The PeVFA arguments that build the policy (they travel in ``policy_kwargs``).
 #: The PeVFA arguments that build the policy: the class adds them to ``policy_kwargs`` (and CRITIC_DEFAULTS where
 #: they are not given)
 ADDED_POLICY_KWARGS = PEVFA_ARGUMENTS[:6]
