@@ -66,15 +66,16 @@ def report(out: pathlib.Path, task: str, checkpoints: tuple[int, ...] = (100_000
         rows[label] = {r["seed"]: r for r in runs[task]["ppo"] if r["seed"] in seeds}
     rows.update({f"authors' PPO, {variant}": runs for variant, runs in made.items()})
     head = " | ".join(f"by {c // 1000}k: mean (seeds {', '.join(map(str, seeds))})" for c in checkpoints)
-    print(f"| {task} | {head} | CPU-min per 100k |\n|---" + "|---" * (len(checkpoints) + 1) + "|")
+    print(f"| {task} | {head} | CPU-min (wall-min) per 100k |\n|---" + "|---" * (len(checkpoints) + 1) + "|")
     for label, runs in rows.items():
         cells = []
         for c in checkpoints:
             best = {seed: best_by(run["curve"], c) for seed, run in runs.items()}
             each = ", ".join(f"{best[s]:.0f}" if s in best else "—" for s in seeds)
             cells.append(f"{np.mean(list(best.values())):.0f} ({each})")
-        cpu = np.mean([run["cpu_seconds"] / run["timesteps"] * 100_000 / 60 for run in runs.values()])
-        print(f"| {label} | " + " | ".join(cells) + f" | {cpu:.1f} |")
+        cpu, wall = (np.mean([run[key] / run["timesteps"] * 100_000 / 60 for run in runs.values()])
+                     for key in ("cpu_seconds", "wall_seconds"))  # fmt: skip
+        print(f"| {label} | " + " | ".join(cells) + f" | {cpu:.1f} ({wall:.1f}) |")
 
 
 def main() -> None:
