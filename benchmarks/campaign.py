@@ -9,12 +9,15 @@ per CPU-second, the package's commit and the versions of torch, SB3, gymnasium a
 Storage: a JournalStorage file per campaign, ``benchmarks/campaigns/<campaign>.journal``, committed with the
 repository, so a campaign resumes from git on any machine; ``--storage postgresql://...`` (any SQLAlchemy URL) lets
 any number of machines pull trials from one database, with Optuna's heartbeat failing the trials of dead workers and
-``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials whose
-worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each again;
-a trial stopped by SIGINT/SIGTERM is enqueued again too, and goes on from its last checkpoint where the machine kept
-it. A grid point whose worker died more than ``MAX_RETRY`` times (stops do not count) and a trial whose training
-raised stay failed (the report lists both). A worker out of grid points waits while others run the last ones and
-takes over any whose worker dies. A task, variant and seed counts once in the report, however often it ran.
+``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials
+whose worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each
+again; a trial stopped by SIGINT/SIGTERM is enqueued again too, and goes on from its last checkpoint where the machine
+kept it. A grid point whose worker died more than ``MAX_RETRY`` times (stops do not count) and a trial whose training
+raised stay failed (the report lists both; the status shows the exception, and ``run --retry-raised`` enqueues such
+grid points again once the cause is mended). ``run`` makes each task left to train once before any worker starts, so
+that a missing dependency (Box2D, MuJoCo) stops it with its reason. A worker out of grid points waits while others run
+the last ones and takes over any whose worker dies. A task, variant and seed counts once in the report, however often
+it ran.
 
     # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
     nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &

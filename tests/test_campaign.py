@@ -249,13 +249,33 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
     study.optimize(workers.objective(tiny), n_trials=1, catch=(RuntimeError,))  # the retry runs and raises
     retry = study.trials[1]
     assert retry.state == TrialState.FAIL and retry.system_attrs["failed_trial"] == 0 and not retry.user_attrs["interrupted"]
+    assert results.trial_outcome(retry) == " (raised RuntimeError: a NaN in the update)"  # the status says why
     assert storage.recover(study, tiny) == []  # a training that raised stays failed
+    assert storage.recover(study, tiny, retry_raised=True) == [1]  # unless asked, once the cause is mended
+    again = study.trials[2]
+    assert again.state == TrialState.WAITING and storage.grid_point(again) == (TASK, "ppo", 0)
+    assert again.system_attrs["retry_history"] == [0, 1] and storage.recover(study, tiny, retry_raised=True) == []
+    study.optimize(workers.objective(tiny), n_trials=1, catch=(RuntimeError,))
     # a grid point that another trial has taken is pruned, never trained twice
     study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, params={**params, "seed": 1},
                                         distributions=distributions))  # fmt: skip
     study.enqueue_trial({**params, "seed": 1})
     study.optimize(workers.objective(tiny), n_trials=1)
-    assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 2
+    assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 3
+
+
+def test_run_stops_before_any_worker_where_a_task_left_to_train_cannot_be_made(tmp_path, monkeypatch):
+    tiny = definitions.Campaign("paper", (TASK, "NoSuchTask-v0", "Pendulum-v1"), ("ppo",), (0,), 4000, 2000, 2)
+    study, _ = storage.open_study("made", storage.storage_of("made", str(tmp_path / "m.journal")), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, distributions=distributions,
+                                        params={"task": "Pendulum-v1", "variant": "ppo", "seed": 0}))  # fmt: skip
+    made, make = [], workers.gymnasium.make
+    monkeypatch.setattr(workers.gymnasium, "make", lambda task: made.append(task) or make(task))
+    monkeypatch.setattr(workers.subprocess, "Popen", lambda *args, **kwargs: pytest.fail("a worker started"))
+    with pytest.raises(SystemExit, match=r"(?s)cannot be made on this machine.*made: NoSuchTask-v0: NameNotFound"):
+        workers.run(["made"], str(tmp_path / "m.journal"), workers=1, stale_after=1800.0)
+    assert made == [TASK, "NoSuchTask-v0"]  # not the task whose grid point is complete
 
 
 def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_path, monkeypatch):

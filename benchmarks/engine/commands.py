@@ -38,6 +38,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     parser.add_argument("--stale-after", type=float, default=1800.0,
                         help="journal storage: a RUNNING trial of another machine without a heartbeat for this "
                              "many seconds is failed and enqueued again (here: once its process is gone)")  # fmt: skip
+    parser.add_argument("--retry-raised", action="store_true",
+                        help="run: enqueue again the grid points whose training raised (once the cause is mended; "
+                             "the status shows each one's exception)")  # fmt: skip
     new = parser.add_argument_group("a new campaign's definition (stored in its study when it is created)")
     new.add_argument("--protocol", choices=sorted(VARIANTS))
     new.add_argument("--tasks", nargs="+")
@@ -59,7 +62,7 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
             parser.error("define one campaign at a time")
         open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
     if args.command == "run":
-        run(args.campaign, args.storage, args.workers, args.stale_after)
+        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
     elif args.command == "work":
         work(args.campaign, args.storage, args.stale_after)
     else:

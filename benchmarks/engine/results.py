@@ -8,7 +8,7 @@ import numpy as np
 from optuna.trial import TrialState
 
 from .definitions import Campaign
-from .storage import deaths, done, grid_states, open_study, retried_enough, storage_of
+from .storage import deaths, done, grid_states, open_study, raised, retried_enough, storage_of
 
 #: task -> variant -> the user attributes of its completed runs, one per seed
 Runs = dict[str, dict[str, list[dict[str, Any]]]]
@@ -42,8 +42,10 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
                     resumed.append(f"{task} {label} {seed} ({complete[0].user_attrs['resumed_from']:,})")
                 if len(complete) > 1:
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
-            elif trials and trials[-1].state == TrialState.FAIL and not trials[-1].user_attrs.get("interrupted"):
-                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised)")
+            elif trials and raised(trials[-1]):
+                error = trials[-1].user_attrs.get("error")
+                why = f"its training raised {error}" if error else "its training raised"
+                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed ({why})")
             elif trials and retried_enough(trials[-1], by_number):
                 died = f"trial {trials[-1].number}'s worker died {deaths(trials[-1], by_number)} times"
                 notes.append(f"{task} {label} seed {seed}: {died}: not retried again")
@@ -138,10 +140,12 @@ def status_of(name: str, storage: str | None) -> None:
 def trial_outcome(trial: Any, retried: bool = False) -> str:
     """What the status adds to a trial's state: its max average return, or why a failed one stopped (an interruption:
     the worker was stopped or died, and the grid point is tried again; a failed trial that Optuna's heartbeat retried
-    (``retried``); else its training raised)."""
+    (``retried``); else its training raised, with the exception where the trial kept it)."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
     if trial.state != TrialState.FAIL:
         return ""
     reason = trial.user_attrs.get("interrupted") or ("worker gone, retried" if retried else "")
-    return f" (interrupted: {reason})" if reason else " (raised)"
+    if reason:
+        return f" (interrupted: {reason})"
+    return f" (raised {trial.user_attrs['error']})" if trial.user_attrs.get("error") else " (raised)"

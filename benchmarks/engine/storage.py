@@ -103,6 +103,11 @@ def _interrupted(trial: FrozenTrial) -> bool:
     return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted"))
 
 
+def raised(trial: FrozenTrial) -> bool:
+    """Whether a failed trial's training raised (it was neither stopped nor left by its worker)."""
+    return trial.state == TrialState.FAIL and not trial.user_attrs.get("interrupted")
+
+
 def _alive(worker: dict[str, Any], stale_after: float, heartbeat: float | None) -> bool:
     """Whether the worker of a RUNNING trial still runs: its process on this machine, else a recent heartbeat."""
     if worker.get("host") == socket.gethostname() and worker.get("boot_id") == boot_id():
@@ -133,11 +138,12 @@ def retried_enough(latest: FrozenTrial, trials: dict[int, FrozenTrial]) -> bool:
     return _interrupted(latest) and deaths(latest, trials) > MAX_RETRY
 
 
-def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0) -> list[int]:
+def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0, retry_raised: bool = False) -> list[int]:
     """Fail the RUNNING trials of dead workers (journal storage: the process on this machine is gone, else no
     heartbeat for ``stale_after`` seconds; a database: Optuna's heartbeat, whose callback enqueues the retry) and
     enqueue each grid point whose latest trial was interrupted again, unless its worker died more than ``MAX_RETRY``
-    times. Returns the numbers of the trials retried."""
+    times; with ``retry_raised``, each whose latest training raised too (once its cause is mended). Returns the
+    numbers of the trials retried."""
     storage = study._storage
     if isinstance(storage, RDBStorage):
         optuna.storages.fail_stale_trials(study)
@@ -158,7 +164,8 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
             continue
         latest = trials[-1]
         history = latest.system_attrs.get("retry_history", [])
-        if _interrupted(latest) and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}}):
+        again = _interrupted(latest) and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}})
+        if again or (retry_raised and raised(latest)):
             # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
             enqueue(study, grid_point(latest), failed_trial=latest.system_attrs.get("failed_trial", latest.number),
                     retry_history=[*history, latest.number])  # fmt: skip

@@ -3,6 +3,7 @@ after campaign, then waits while others run the last grid points and takes over 
 recovers the trials of dead workers, starts the worker processes (``benchmarks/campaign.py work``) and shows the
 progress."""
 
+import importlib
 import os
 import random
 import signal
@@ -13,15 +14,18 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import gymnasium
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
 from .definitions import ROOT, Campaign
-from .storage import boot_id, done, draw, grid_point, open_study, pending, recover, running, storage_of
+from .storage import boot_id, done, draw, grid_point, grid_states, open_study, pending, recover, running, storage_of
 from .training import provenance, train
 
 #: The command line of a worker process (``storage`` knows a live worker by it)
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
+#: The characters of a training's exception kept in its trial
+ERROR_LENGTH = 300
 
 
 def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
@@ -48,6 +52,9 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
                 trial.set_user_attr(key, value)
         except (KeyboardInterrupt, SystemExit):
             trial.set_user_attr("interrupted", "stopped")
+            raise
+        except Exception as error:  # the status and the report say why it failed
+            trial.set_user_attr("error", f"{type(error).__name__}: {error}"[:ERROR_LENGTH])
             raise
         return result["max_average_return"]
 
@@ -111,18 +118,41 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
 
 
-def run(names: list[str], storage: str | None, workers: int, stale_after: float) -> None:
-    """Recover the trials of dead workers, start ``workers`` worker processes over the campaigns in order and show
-    the grids' progress."""
+def check_tasks(studies: list[tuple[optuna.Study, Campaign]]) -> None:
+    """Each task with a grid point left to train made once, so that a missing dependency (MuJoCo, Box2D, an env that
+    rl-zoo3 registers) stops ``run`` with its reason before any trial fails of it."""
+    problems, seen = [], set()
+    for study, campaign in studies:
+        for (task, _, _), trials in grid_states(study, campaign).items():
+            if (task, campaign.protocol) in seen or any(t.state == TrialState.COMPLETE for t in trials):
+                continue
+            seen.add((task, campaign.protocol))
+            try:
+                if campaign.protocol == "zoo":  # rl-zoo3's own envs, as its training registers them
+                    importlib.import_module("rl_zoo3.import_envs")
+                gymnasium.make(task).close()
+            except Exception as error:
+                problems.append(f"  {study.study_name}: {task}: {type(error).__name__}: {error}")
+    if problems:
+        raise SystemExit("These tasks cannot be made on this machine, so no worker started (the benchmarks' "
+                         'dependencies: pip install -e ".[zoo,mujoco,box2d]"):\n' + "\n".join(problems))  # fmt: skip
+
+
+def run(names: list[str], storage: str | None, workers: int, stale_after: float, retry_raised: bool = False) -> None:
+    """Recover the trials of dead workers (with ``retry_raised``, the grid points whose training raised too), check
+    that the tasks left can be made, start ``workers`` worker processes over the campaigns in order and show the
+    grids' progress."""
     studies = []
     for name in names:
         study, campaign = open_study(name, storage_of(name, storage))
-        retried = recover(study, campaign, stale_after)
+        retried = recover(study, campaign, stale_after, retry_raised)
         if retried:
-            print(f"{name}: trials {retried} were interrupted or their worker is gone: enqueued again", flush=True)
+            why = "were interrupted or their worker is gone" + (", or their training raised" if retry_raised else "")
+            print(f"{name}: trials {retried} {why}: enqueued again", flush=True)
         print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete, "
               f"{pending(study, campaign)} waiting", flush=True)  # fmt: skip
         studies.append((study, campaign))
+    check_tasks(studies)
     command = [sys.executable, str(SCRIPT), "work", "--campaign", *names]
     command += ["--stale-after", str(stale_after)]
     command += ["--storage", storage] if storage else []
