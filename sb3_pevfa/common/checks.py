@@ -14,3 +14,13 @@ def check_keyword_arguments(target: Callable[..., Any], kwargs: dict[str, Any], 
     unknown = sorted(set(kwargs) - set(valid))
     if unknown:
         raise ValueError(f"Unknown {what} {unknown}, valid choices: {valid}")
+
+
+def check_policy_class(model: Any, base: type) -> None:
+    """A TypeError unless the model's policy class is ``base`` or a subclass (not SB3's own policy, nor another
+    algorithm's, as a file of another algorithm brings), naming the aliases the model takes."""
+    if not (isinstance(model.policy_class, type) and issubclass(model.policy_class, base)):
+        raise TypeError(
+            f"{type(model).__name__} needs its PeVFA policy (one of {sorted(model.policy_aliases)} or a subclass of "
+            f"{base.__name__}), got {model.policy_class}"
+        )

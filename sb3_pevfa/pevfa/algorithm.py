@@ -35,6 +35,7 @@ from stable_baselines3.common.utils import FloatSchedule, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch.nn import functional as F
 
+from sb3_pevfa.common.checks import check_policy_class
 from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa import episodes, fast_path
 from sb3_pevfa.pevfa.arguments import (
@@ -99,11 +100,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         return {**defaults, **held, **{name: vars(self)[name] for name in PEVFA_ARGUMENTS if name in vars(self)}}
 
     def _setup_model(self) -> None:
-        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, PeVFAActorCriticPolicy)):
-            raise TypeError(
-                f"{type(self).__name__} needs a PeVFA policy (one of {sorted(self.policy_aliases)} or a subclass of "
-                f"PeVFAActorCriticPolicy), got {self.policy_class}"
-            )
+        check_policy_class(self, PeVFAActorCriticPolicy)
         validate_arguments(self._pevfa_arguments())  # again: load() sets its keyword arguments on the model before this
         if self.rollout_buffer_class is None:
             dict_obs = isinstance(self.observation_space, spaces.Dict)

@@ -20,6 +20,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
+from sb3_pevfa.common.checks import check_policy_class
 from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
@@ -142,12 +143,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
 
     def _setup_model(self) -> None:
-        policy_base = self.policy_aliases["MlpPolicy"]  # the algorithm's PeVFA policy class
-        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, policy_base)):
-            raise TypeError(
-                f"{type(self).__name__} needs its PeVFA policy (one of {sorted(self.policy_aliases)} or a subclass of "
-                f"{policy_base.__name__}), got {self.policy_class}"
-            )
+        check_policy_class(self, self.policy_aliases["MlpPolicy"])  # the algorithm's PeVFA policy class
         self._check_arguments()  # again: load() sets its keyword arguments on the model before this
         super()._setup_model()
         critic = self.policy.critic
