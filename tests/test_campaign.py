@@ -488,6 +488,8 @@ def test_report_statistics_by_hand(monkeypatch):
         {"A": {"ppo": [done], "opr": [slow]}}, {}, [three], workers=1
     )  # spr at (1 + 2) / 2 CPU-hours, (1 + 2) / 2 wall-clock hours left
     assert results.scaled_time({("A", "paper:ppo"): np.ones(2)}, ("A", "authors:random")) is None
+    nothing = results.expected_duration({}, {}, [three], workers=1)  # never "0.0 hours" for runs it cannot estimate
+    assert nothing.startswith("Expected duration: not known yet") and "the 3 runs left" in nothing
     assert results.scaled_time({("A", "authors:ppo"): np.ones(2)}, ("A", "authors:random")).tolist() == [1.0, 1.0]
     x, y = {"A": np.array([1.0, 3.0])}, {"A": np.array([2.0, 3.0])}
     assert tables.probability_of_improvement(x, y) == 0.375  # pairs: 1>2 no, 1>3 no, 3>2 yes, 3=3 half

@@ -87,6 +87,10 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
         remaining += 0.0 if done else max(time[1] - elapsed, 0.0)  # a running trial: what it has left
     if not remaining and not unknown:
         return f"Duration: {total / 3600:.1f} CPU-hours of training and evaluation in all, nothing left to run."
+    if not total:
+        return (f"Expected duration: not known yet: no run of these variants, nor of their protocol's other variants on "
+                f"these tasks, to estimate the {unknown} runs left from (a campaign of the same protocol named beside "
+                "this one lends its runs' times).")  # fmt: skip
     text = (f"Expected duration: about {total / 3600:.1f} CPU-hours in all, {remaining / 3600 / workers:.1f} wall-clock hours "
             f"left on {workers} workers (from the runs' mean times per task and variant, else running trials' "
             "progress, else other variants' times scaled by their ratio, else, for a variant with no run yet, the "
