@@ -8,7 +8,9 @@ import pytest
 import torch as th
 from conftest import needs_denormal_flush
 from stable_baselines3 import SAC, TD3
+from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from torch.nn import functional as F
 
 from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.sac_pevfa import SACPeVFA
@@ -265,6 +267,58 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
     before = copy.deepcopy(model.policy.critic.state_dict())
     loss = train()
     assert np.isfinite(loss) and any(not th.equal(v, model.policy.critic.state_dict()[k]) for k, v in before.items())
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_a_snapshot_update_fits_each_transition_to_its_snapshots_target_written_out(pevfa_class):
+    """One snapshot update against SB3's target written out per snapshot k: y = r + gamma (1 - d) (min_j Q'_j(s',
+    a'_k, chi_k) [- alpha log pi_k(a'_k | s')]), a'_k from a copy of the actor taken when k was recorded (TD3: its
+    smoothed action), the loss of Q_j(s, a, chi_k) on y; the encoder is trained by it, not only by the live loss."""
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", representation="opr", snapshot_freq=50, history_train_freq=5,
+                        history_batch_size=64, history_batch_policies=2, live_encoder_gradient=False, **tiny())  # fmt: skip
+    actors, record = {}, model.record_snapshot
+
+    def recorded() -> int:
+        policy_id = record()
+        actors[policy_id] = copy.deepcopy(model.actor)
+        return policy_id
+
+    model.record_snapshot = recorded  # type: ignore[method-assign]
+    model.learn(300)  # the snapshot updates train the encoder: its target copy lags behind
+    ids = list(actors)[-3:-1]  # two snapshots, neither the live actor
+    per_policy = model.history_batch_size // model.history_batch_policies
+    data = model.replay_buffer.sample(2 * per_policy)
+    model.history.sample_policy_ids = lambda n: np.array(ids)  # type: ignore[method-assign]
+    model.replay_buffer.sample = lambda n, env=None: data if n == 2 * per_policy else pytest.fail(n)  # type: ignore[method-assign]
+    critic, target = model.policy.critic, model.policy.critic_target
+    with th.no_grad():
+        blocks = [slice(i * per_policy, (i + 1) * per_policy) for i in range(2)]
+        records = [PolicyRecord.from_numpy(model.history.records([k])) for k in ids]
+        chis = [tuple(m.representation(r) for m in (critic, target)) for r in records]  # (1, embedding) each
+        th.manual_seed(3)
+        if pevfa_class is SACPeVFA:
+            params = [actors[k].get_action_dist_params(data.next_observations[b])[:2] for k, b in zip(ids, blocks)]
+            mean, log_std = (th.cat(p) for p in zip(*params))
+            next_actions, log_prob = SquashedDiagGaussianDistribution(1).log_prob_from_params(mean, log_std)
+            entropy = th.exp(model.log_ent_coef) * log_prob.reshape(-1, 1)
+        else:
+            mean = th.cat([actors[k](data.next_observations[b]) for k, b in zip(ids, blocks)])
+            noise = th.randn_like(mean) * model.target_policy_noise
+            next_actions, entropy = (mean + noise.clamp(-model.target_noise_clip, model.target_noise_clip)).clamp(-1, 1), 0.0
+        next_q = th.cat([th.cat(target(data.next_observations[b], next_actions[b], chi), dim=1)
+                         for b, (_, chi) in zip(blocks, chis)])  # fmt: skip
+        y = data.rewards + (1 - data.dones) * model.gamma * (next_q.min(dim=1, keepdim=True).values - entropy)
+        values = th.cat([th.cat(critic(data.observations[b], data.actions[b], chi), dim=1)
+                         for b, (chi, _) in zip(blocks, chis)])  # fmt: skip
+        scale = 0.5 if pevfa_class is SACPeVFA else 1.0  # SB3's SAC and TD3 critic losses
+        expected = scale * sum(F.mse_loss(values[:, [j]], y) for j in range(values.shape[1]))
+    encoder, fit, seen = copy.deepcopy(critic.representation.state_dict()), model.fit_critic, []
+    model.fit_critic = lambda values, targets, optimizer: seen.append((values, targets)) or fit(values, targets, optimizer)  # type: ignore[method-assign]
+    th.manual_seed(3)
+    assert model._train_on_snapshots() == pytest.approx(float(expected), rel=1e-6)
+    np.testing.assert_allclose(seen[0][1], y, rtol=1e-6, atol=1e-6)  # each transition's target
+    np.testing.assert_allclose(th.cat(seen[0][0], dim=1).detach(), values, rtol=1e-6, atol=1e-6)
+    assert any(not th.equal(v, critic.representation.state_dict()[k]) for k, v in encoder.items())
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
