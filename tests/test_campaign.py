@@ -792,8 +792,17 @@ def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_
         training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
     assert {p.name for p in folder.iterdir()} >= {"model.zip", "history.npz", "replay_buffer.pkl", "state.json"}
     state = json.loads((folder / "state.json").read_text())
+    loaded, load = [], training.load_checkpoint
+
+    def loading(*args):  # what the resumed model holds as it is loaded
+        model, saved = load(*args)
+        loaded.append((model.replay_buffer.size(), model.history.n_policies))
+        return model, saved
+
+    monkeypatch.setattr(training, "load_checkpoint", loading)
     result = training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
     assert result["resumed_from"] == state["timesteps"] == 1000 and result["timesteps"] == 2000
+    assert loaded == [(1000, 1)]  # the checkpoint's replay buffer of 1000 transitions and its snapshot
     assert result["curve"]["steps"] == [500, 1000, 1500, 2000] and state["n_policies"] == 1  # the first update's
     arguments = result["arguments"]
     assert arguments["snapshot_freq"] == "1000" and arguments["learning_starts"] == "900"  # the mixin's and SAC's

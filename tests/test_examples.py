@@ -52,7 +52,9 @@ def test_example_runs_tiny(tmp_path, example):
     if example == "zero_shot_values.py":
         assert "a smoke run (--tiny)" in result.stdout
     if example == "zoo_commands.sh":  # the training curve is drawn (coloured pixels), not an empty frame
-        for png in tmp_path.glob("plots/training_*.png"):
+        drawn = sorted(tmp_path.glob("plots/training_*.png"))
+        assert drawn, sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*.png"))
+        for png in drawn:
             assert _coloured_pixels(png) > 100, png
 
 

@@ -20,6 +20,11 @@ def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_g
     assert log_prob is None
     np.testing.assert_allclose(actions.detach(), expected.detach(), atol=1e-5)
     assert not th.allclose((model.policy.actor(observations) + noise).clamp(-1, 1), actions, atol=1e-3)
+    critic, actor = model.policy.critic, model.policy.actor
     model.policy.zero_grad(set_to_none=True)  # TD3's actor loss: Q1(s, mu(s), chi) with chi of the live actor
-    (-model.policy.critic.q1_forward(observations, model.policy.actor(observations).detach()).mean()).backward()
-    assert all(p.grad is None for p in model.policy.actor.parameters())
+    (-critic.q1_forward(observations, actor(observations)).mean()).backward()
+    assert all(p.grad is None for p in critic.representation.parameters())  # the encoder learns nothing from it
+    through_actions = [p.grad.clone() for p in actor.parameters()]
+    model.policy.zero_grad(set_to_none=True)  # the same loss with chi a constant: the actor's gradients are the same
+    (-critic.q1_forward(observations, actor(observations), chi=critic.live_embedding().detach()).mean()).backward()
+    assert all(th.equal(p.grad, g) for p, g in zip(actor.parameters(), through_actions))
