@@ -2,7 +2,9 @@
 journal storage, a killed worker's trial retried exactly once, a resume from the journal and the report from the
 storage alone."""
 
+import functools
 import json
+import logging
 import os
 import pathlib
 import shutil
@@ -233,9 +235,12 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
         storage.open_study("nothing", storage.storage_of("nothing", str(tmp_path / "n.journal")))
 
 
-def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_point(tmp_path, monkeypatch):
-    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
-    study, _ = storage.open_study("raise", storage.storage_of("raise", str(tmp_path / "r.journal")), tiny)
+@pytest.mark.parametrize("kind", ["journal", "database"])
+def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_point(tmp_path, monkeypatch, capsys, kind):
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
+    where = str(tmp_path / "r.journal") if kind == "journal" else f"sqlite:///{tmp_path / 'r.db'}"  # Optuna's heartbeat
+    study, _ = storage.open_study("raise", storage.storage_of("raise", where), tiny)
+    assert storage.on_database(study) == (kind == "database")  # through the cache Optuna wraps a database in
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     params = {"task": TASK, "variant": "ppo", "seed": 0}
     study.add_trial(optuna.create_trial(state=TrialState.FAIL, params=params, distributions=distributions,
@@ -251,17 +256,31 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
     assert retry.state == TrialState.FAIL and retry.system_attrs["failed_trial"] == 0 and not retry.user_attrs["interrupted"]
     assert results.trial_outcome(retry) == " (raised RuntimeError: a NaN in the update)"  # the status says why
     assert storage.recover(study, tiny) == []  # a training that raised stays failed
+    assert workers.failed(study, tiny) == 1 and "1 grid points failed: their training raised" in workers.failed_text(
+        study, tiny
+    )
     assert storage.recover(study, tiny, retry_raised=True) == [1]  # unless asked, once the cause is mended
     again = study.trials[2]
     assert again.state == TrialState.WAITING and storage.grid_point(again) == (TASK, "ppo", 0)
     assert again.system_attrs["retry_history"] == [0, 1] and storage.recover(study, tiny, retry_raised=True) == []
     study.optimize(workers.objective(tiny), n_trials=1, catch=(RuntimeError,))
+    results.status_of("raise", where)  # a retried training that raised is not a dead worker's
+    assert "#0:FAIL (interrupted: stopped) #1:FAIL (raised RuntimeError: a NaN in the update) #2:FAIL (raised" in (
+        capsys.readouterr().out
+    )
+    text = engine.report.report(["raise"], where, "ppo", 2, None)  # no run complete yet
+    assert text.endswith(f"- {TASK} ppo seed 0: trial 2 failed (its training raised RuntimeError: a NaN in the update)")
     # a grid point that another trial has taken is pruned, never trained twice
     study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, params={**params, "seed": 1},
                                         distributions=distributions))  # fmt: skip
     study.enqueue_trial({**params, "seed": 1})
     study.optimize(workers.objective(tiny), n_trials=1)
     assert study.trials[-1].state == TrialState.PRUNED and study.trials[-1].user_attrs["duplicate_of"] == 3
+    study.enqueue_trial({**params, "seed": 2})  # a first trial that raises, enqueued again by --retry-raised
+    study.optimize(workers.objective(tiny), n_trials=1, catch=(RuntimeError,))
+    assert storage.recover(study, tiny, retry_raised=True) == [2, 5]  # seed 0 again too
+    results.status_of("raise", where)
+    assert "seed 2: #5:FAIL (raised RuntimeError: a NaN in the update) #7:WAITING\n" in capsys.readouterr().out
 
 
 def test_run_stops_before_any_worker_where_a_task_left_to_train_cannot_be_made(tmp_path, monkeypatch):
@@ -273,7 +292,7 @@ def test_run_stops_before_any_worker_where_a_task_left_to_train_cannot_be_made(t
     made, make = [], workers.gymnasium.make
     monkeypatch.setattr(workers.gymnasium, "make", lambda task: made.append(task) or make(task))
     monkeypatch.setattr(workers.subprocess, "Popen", lambda *args, **kwargs: pytest.fail("a worker started"))
-    with pytest.raises(SystemExit, match=r"(?s)cannot be made on this machine.*made: NoSuchTask-v0: NameNotFound"):
+    with pytest.raises(SystemExit, match=r"(?s)cannot be trained on this machine.*made: NoSuchTask-v0: NameNotFound"):
         workers.run(["made"], str(tmp_path / "m.journal"), workers=1, stale_after=1800.0)
     assert made == [TASK, "NoSuchTask-v0"]  # not the task whose grid point is complete
 
@@ -711,6 +730,56 @@ def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
     cpu = result["curve"]["cpu_s"]
     assert cpu == sorted(cpu) and cpu[1] == state["curve"]["cpu_s"][1] and cpu[-1] < result["cpu_seconds"]
     assert result["cpu_seconds"] > state["cpu"] and result["eval_cpu_seconds"] > state["eval_cpu"]
+
+
+def _refused(main, capsys, *args: str) -> str:
+    """The usage error a command line ends with (no traceback)."""
+    with pytest.raises(SystemExit) as stopped:
+        main(list(args))
+    assert stopped.value.code == 2
+    return capsys.readouterr().err.splitlines()[-1]
+
+
+def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
+    journal = str(tmp_path / "mine.journal")
+    define = ["run", "--campaign", "mine", "--storage", journal, "--protocol", "sb3", "--variants", "ppo"]
+    campaign = functools.partial(_refused, commands.campaign_main, capsys)
+    assert campaign(*define, "--tasks", TASK, "--seeds", "0", "0", "--timesteps", "4000").endswith("seeds [0] given twice")
+    assert "eval_freq at most timesteps" in campaign(*define, "--tasks", TASK, "--seeds", "0", "--timesteps", "4000")
+    typo = campaign(*define, "--tasks", "InvertedPendulm-v5", "--seeds", "0", "--timesteps", "4000", "--eval-freq", "2000")
+    assert "cannot be trained here: InvertedPendulm-v5: NameNotFound" in typo
+    sac = [*define[:-4], "--protocol", "sac", "--variants", "sac", "--seeds", "0", "--eval-freq", "5000"]
+    assert "trains from step 10,000 on" in campaign(*sac, "--tasks", TASK, "--timesteps", "10000")
+    box = campaign(*sac, "--tasks", "CartPole-v1", "--timesteps", "20000")
+    assert "protocol 'sac' needs a Box action space, the task's is Discrete(2)" in box
+    assert "No campaign 'mine' in " in campaign("status", "--campaign", "mine", "--storage", journal)
+    assert "--retry-raised is an option of run" in campaign("status", "--campaign", "table1", "--retry-raised")
+    assert not (tmp_path / "mine.journal").exists()  # none of these stored a definition
+    tiny = definitions.Campaign("sb3", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    storage.open_study("mine", storage.storage_of("mine", journal), tiny)
+    again = campaign(*define, "--tasks", TASK, "--seeds", "0", "1", "--timesteps", "4000", "--eval-freq", "2000",
+                     "--eval-episodes", "2")  # fmt: skip
+    assert "Campaign 'mine' was started with seeds [0] (given: [0, 1]): a campaign's definition never changes" in again
+    report = functools.partial(_refused, commands.campaign_report_main, capsys)
+    assert report("--campaign", "mine", "--storage", journal, "--baseline", "PPO").endswith(
+        "--baseline 'PPO' is none of these campaigns' variants: ['ppo']"
+    )
+    commands.campaign_report_main(["--campaign", "mine", "--storage", journal, "--out", str(tmp_path / "new" / "out")])
+    assert (tmp_path / "new" / "out" / "report.md").read_text().startswith("Campaigns mine: 0 of 1 runs complete.")
+
+
+def test_a_stopped_worker_exits_quietly_and_a_failed_grid_point_is_named(tmp_path, monkeypatch):
+    def stopped(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(workers, "work_on_all", stopped)
+    with pytest.raises(SystemExit) as exit_status:
+        workers.work(["mine"], None)
+    assert exit_status.value.code == workers.STOPPED == 130
+    record = logging.LogRecord("optuna", logging.WARNING, "", 0, "Trial 0 failed", None, (KeyboardInterrupt, None, None))
+    assert workers._without_stop_traceback(record) and record.exc_info is None  # the warning stays, its stack goes
+    raised = logging.LogRecord("optuna", logging.WARNING, "", 0, "Trial 1 failed", None, (ValueError, None, None))
+    assert workers._without_stop_traceback(raised) and raised.exc_info is not None
 
 
 def test_a_zoo_campaign_trains_through_rl_zoo3_on_one_hyperparameter_file():

@@ -11,11 +11,11 @@ import pathlib
 import optuna
 
 from . import training_logs, zoo_report
-from .definitions import CAMPAIGNS, VARIANTS, ZOO_VARIANTS, Campaign
+from .definitions import CAMPAIGN_DIR, CAMPAIGNS, OFF_POLICY, VARIANTS, ZOO_VARIANTS, Campaign
 from .report import report, summary
 from .results import status
 from .storage import open_study, storage_of
-from .workers import run, work
+from .workers import run, unmakeable, work
 from .zoo import run_name
 
 #: ``--storage`` of the campaign commands
@@ -52,21 +52,48 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     new.add_argument("--conf", help="protocol zoo: the rl-zoo3 hyperparameter file of every variant (in the repository)")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    if args.protocol or args.tasks or args.variants or args.seeds or args.timesteps:
+    defining = args.protocol or args.tasks or args.variants or args.seeds or args.timesteps
+    if args.retry_raised and args.command != "run":
+        parser.error("--retry-raised is an option of run")
+    if defining:
         missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
         if missing:
             parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
-        given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
-                         args.eval_freq, args.eval_episodes, args.conf)  # fmt: skip
         if len(args.campaign) > 1:
             parser.error("define one campaign at a time")
-        open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
-    if args.command == "run":
-        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
-    elif args.command == "work":
-        work(args.campaign, args.storage, args.stale_after)
-    else:
-        status(args.campaign, args.storage, args.workers)
+        try:
+            given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
+                             args.eval_freq, args.eval_episodes, args.conf)  # fmt: skip
+        except ValueError as error:
+            parser.error(str(error))
+        problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
+        if problems:
+            parser.error(f"these tasks cannot be trained here: {'; '.join(problems)}")
+    try:
+        known(args.campaign, args.storage, defined=bool(defining))
+        if defining:
+            open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
+        if args.command == "run":
+            run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
+        elif args.command == "work":
+            work(args.campaign, args.storage, args.stale_after)
+        else:
+            status(args.campaign, args.storage, args.workers)
+    except ValueError as error:  # an unknown campaign, or one given again with another definition
+        parser.error(str(error))
+
+
+def known(names: list[str], storage: str | None, defined: bool = False) -> None:
+    """A ValueError for a campaign that is neither the repository's, nor in its journal file, nor being defined (so
+    that a mistyped name leaves no empty journal behind)."""
+    for name in names:
+        if name in CAMPAIGNS or (defined and name == names[0]) or (storage and "://" in storage):
+            continue
+        path = pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{name}.journal"
+        if not path.exists():
+            where = f"in {path}" if storage else f"in the repository ({sorted(CAMPAIGNS)})"
+            raise ValueError(f"No campaign {name!r} {where}: give --protocol, --tasks, --variants, --seeds and "
+                             "--timesteps to define a new one (campaign.py), or --storage where it is")  # fmt: skip
 
 
 def campaign_report_main(argv: list[str] | None = None, description: str | None = None) -> None:
@@ -74,13 +101,25 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     parser = parser_of(description)
     parser.add_argument("--campaign", nargs="+", required=True)
     parser.add_argument("--storage", default=None, help=STORAGE_HELP)
-    parser.add_argument("--baseline", default="ppo", help="the variant every ratio is to")
+    parser.add_argument("--baseline", default=None, help="the variant every ratio is to (default: ppo, sac in protocol sac)")
     parser.add_argument("--workers", type=int, default=2, help="cores the expected duration is for")
     where = "write report.md, summary.md (a results page's share of it) and the figures in this folder"
     parser.add_argument("--out", type=pathlib.Path, default=None, help=where)
     parser.add_argument("--beside", nargs="+", default=None, help="campaigns of another protocol, their ratios beside")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    try:
+        known(args.campaign + (args.beside or []), args.storage)
+        campaigns = [open_study(name, storage_of(name, args.storage))[1] for name in args.campaign]
+    except ValueError as error:
+        parser.error(str(error))
+    protocols = {c.protocol for c in campaigns}
+    labels = {f"{c.protocol}:{v}" if len(protocols) > 1 else v for c in campaigns for v in c.variants}
+    args.baseline = args.baseline or ("sac" if protocols <= set(OFF_POLICY) else "ppo")
+    if args.baseline not in labels:
+        parser.error(f"--baseline {args.baseline!r} is none of these campaigns' variants: {sorted(labels)}")
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
     png = args.out / "curves.png" if args.out else None
     cache: dict = {}  # the report and its summary read the storage once
     text = report(args.campaign, args.storage, args.baseline, args.workers, png, args.beside, cache)

@@ -134,7 +134,7 @@ def report(
     complete, total = counted(runs, campaigns)
     lines = [f"Campaigns {', '.join(names)}: {complete} of {total} runs complete.", ""]
     if not runs:
-        return "\n".join(lines)
+        return "\n".join(lines + [f"- {note}" for note in notes])
     commits = sorted({r["commit"] for bv in runs.values() for rs in bv.values() for r in rs})
     machines = sorted({r["machine"] for bv in runs.values() for rs in bv.values() for r in rs})
     made = [r for bv in runs.values() for rs in bv.values() for r in rs]

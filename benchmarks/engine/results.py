@@ -8,7 +8,7 @@ import numpy as np
 from optuna.trial import TrialState
 
 from .definitions import Campaign
-from .storage import deaths, done, grid_states, open_study, raised, retried_enough, storage_of
+from .storage import deaths, done, grid_states, on_database, open_study, raised, retried_enough, storage_of
 
 #: task -> variant -> the user attributes of its completed runs, one per seed
 Runs = dict[str, dict[str, list[dict[str, Any]]]]
@@ -135,7 +135,10 @@ def status_of(name: str, storage: str | None) -> None:
     for trial in study.get_trials(deepcopy=False):
         counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
     print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
-    retried = {t.system_attrs.get("failed_trial") for t in study.get_trials(deepcopy=False)}
+    # a database: a failed trial that Optuna's heartbeat enqueued again (a journal file marks its dead workers' trials)
+    heartbeat = on_database(study)
+    retries = [t for t in study.get_trials(deepcopy=False) if heartbeat and not t.system_attrs.get("raised_retry")]
+    retried = {t.system_attrs.get("failed_trial") for t in retries}
     for (task, variant, seed), trials in grid_states(study, campaign).items():
         states = " ".join(f"#{t.number}:{t.state.name}{trial_outcome(t, t.number in retried)}" for t in trials)
         print(f"  {task:28s} {variant:26s} seed {seed}: {states or '-'}")

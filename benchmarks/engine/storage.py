@@ -61,8 +61,8 @@ def open_study(
     expected = given or CAMPAIGNS.get(name)
     existing = {summary.study_name for summary in optuna.get_all_study_summaries(storage)}
     if name not in existing and expected is None:
-        raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give --protocol, --tasks, "
-                         "--variants, --seeds and --timesteps to define a new one")  # fmt: skip
+        raise ValueError(f"Unknown campaign {name!r}: one of {sorted(CAMPAIGNS)}, or give campaign.py --protocol, "
+                         "--tasks, --variants, --seeds and --timesteps to define a new one")  # fmt: skip
     if name in existing:
         study = optuna.load_study(study_name=name, storage=storage)
     else:  # load_if_exists: another machine may create it at the same moment
@@ -76,10 +76,11 @@ def open_study(
     campaign = Campaign.from_definition(stored)
     expected = expected or campaign  # a campaign of one's own: its variants' settings as this code defines them
     if expected.definition() != stored:
-        raise ValueError(
-            f"Campaign {name!r} was started as {stored}, and is now given as {expected.definition()}: a campaign's "
-            "protocol never changes; start one under another name"
-        )
+        given = expected.definition()
+        changed = ", ".join(f"{key} {stored.get(key)!r} (given: {given.get(key)!r})"
+                            for key in dict.fromkeys([*stored, *given]) if stored.get(key) != given.get(key))  # fmt: skip
+        raise ValueError(f"Campaign {name!r} was started with {changed}: a campaign's definition never changes; "
+                         "start one under another name (or, to start over, delete its study from the storage)")  # fmt: skip
     study.sampler = optuna.samplers.GridSampler(campaign.search_space)  # the grid; workers enqueue its points (draw)
     return study, campaign
 
@@ -101,6 +102,12 @@ def grid_states(study: optuna.Study, campaign: Campaign) -> dict[tuple[str, str,
 
 def _interrupted(trial: FrozenTrial) -> bool:
     return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted"))
+
+
+def on_database(study: optuna.Study) -> bool:
+    """Whether the study lives in a database (Optuna wraps an RDBStorage in a cache), where Optuna's heartbeat fails
+    the trials of dead workers and enqueues them again."""
+    return isinstance(getattr(study._storage, "_backend", study._storage), RDBStorage)
 
 
 def raised(trial: FrozenTrial) -> bool:
@@ -144,8 +151,8 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
     enqueue each grid point whose latest trial was interrupted again, unless its worker died more than ``MAX_RETRY``
     times; with ``retry_raised``, each whose latest training raised too (once its cause is mended). Returns the
     numbers of the trials retried."""
-    storage = study._storage
-    if isinstance(storage, RDBStorage):
+    storage, database = study._storage, on_database(study)
+    if database:
         optuna.storages.fail_stale_trials(study)
     by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
     retried = []
@@ -153,7 +160,7 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
         if any(t.state in (TrialState.COMPLETE, TrialState.WAITING) for t in trials):
             continue
         for trial in trials:
-            if trial.state != TrialState.RUNNING or isinstance(storage, RDBStorage):
+            if trial.state != TrialState.RUNNING or database:
                 continue
             started = trial.datetime_start.timestamp() if trial.datetime_start else None
             if not _alive(trial.user_attrs.get("worker", {}), stale_after, trial.user_attrs.get("heartbeat", started)):
@@ -167,8 +174,9 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
         again = _interrupted(latest) and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}})
         if again or (retry_raised and raised(latest)):
             # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
+            marks = {"raised_retry": True} if not again else {}  # not a dead worker's (the status tells them apart)
             enqueue(study, grid_point(latest), failed_trial=latest.system_attrs.get("failed_trial", latest.number),
-                    retry_history=[*history, latest.number])  # fmt: skip
+                    retry_history=[*history, latest.number], **marks)  # fmt: skip
             retried.append(latest.number)
     return retried
 

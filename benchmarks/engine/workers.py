@@ -4,6 +4,7 @@ recovers the trials of dead workers, starts the worker processes (``benchmarks/c
 progress."""
 
 import importlib
+import logging
 import os
 import random
 import signal
@@ -18,12 +19,26 @@ import gymnasium
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
-from .definitions import ROOT, Campaign
-from .storage import boot_id, done, draw, grid_point, grid_states, open_study, pending, recover, running, storage_of
+from .definitions import BOX_ACTIONS, ROOT, Campaign
+from .storage import (
+    boot_id,
+    done,
+    draw,
+    grid_point,
+    grid_states,
+    open_study,
+    pending,
+    raised,
+    recover,
+    running,
+    storage_of,
+)
 from .training import provenance, train
 
 #: The command line of a worker process (``storage`` knows a live worker by it)
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
+#: The exit status of a worker stopped by SIGINT or SIGTERM (a shell's for SIGINT)
+STOPPED = 130
 #: The characters of a training's exception kept in its trial
 ERROR_LENGTH = 300
 
@@ -81,8 +96,24 @@ def _stop(*_: Any) -> None:
 
 
 def work(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
-    """One worker: trials of the campaigns one after another, each campaign's grid before the next one's; then, while
-    other workers run the last grid points, it waits, and runs any whose worker dies."""
+    """One worker (:func:`work_on_all`); stopped (SIGINT, SIGTERM), it exits with ``STOPPED`` and no traceback."""
+    logging.getLogger("optuna.study._optimize").addFilter(_without_stop_traceback)  # its one-line warning stays
+    try:
+        work_on_all(names, storage, stale_after)
+    except KeyboardInterrupt:
+        raise SystemExit(STOPPED) from None
+
+
+def _without_stop_traceback(record: logging.LogRecord) -> bool:
+    """Optuna's warning on a stopped trial without its traceback (the training's stack where the stop reached it)."""
+    if record.exc_info and record.exc_info[0] is KeyboardInterrupt:
+        record.exc_info = None
+    return True
+
+
+def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
+    """Trials of the campaigns one after another, each campaign's grid before the next one's; then, while other
+    workers run the last grid points, it waits, and runs any whose worker dies."""
     signal.signal(signal.SIGTERM, _stop)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
@@ -118,23 +149,37 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
 
 
+def unmakeable(protocol: str, tasks: tuple[str, ...] | list[str]) -> list[str]:
+    """Why each of ``tasks`` cannot be trained in ``protocol`` here: its env cannot be made (a missing dependency:
+    MuJoCo, Box2D; an unknown id), or the protocol needs a Box action space it lacks. Each env is made once."""
+    problems = []
+    for task in tasks:
+        try:
+            if protocol == "zoo":  # rl-zoo3's own envs, as its training registers them
+                importlib.import_module("rl_zoo3.import_envs")
+            env = gymnasium.make(task)
+            space = env.action_space
+            env.close()
+        except Exception as error:
+            problems.append(f"{task}: {type(error).__name__}: {error}")
+            continue
+        if protocol in BOX_ACTIONS and not isinstance(space, gymnasium.spaces.Box):
+            problems.append(f"{task}: protocol {protocol!r} needs a Box action space, the task's is {space}")
+    return problems
+
+
 def check_tasks(studies: list[tuple[optuna.Study, Campaign]]) -> None:
-    """Each task with a grid point left to train made once, so that a missing dependency (MuJoCo, Box2D, an env that
-    rl-zoo3 registers) stops ``run`` with its reason before any trial fails of it."""
+    """Each task with a grid point left to train checked by :func:`unmakeable`, so that a missing dependency stops
+    ``run`` with its reason before any trial fails of it."""
     problems, seen = [], set()
     for study, campaign in studies:
         for (task, _, _), trials in grid_states(study, campaign).items():
             if (task, campaign.protocol) in seen or any(t.state == TrialState.COMPLETE for t in trials):
                 continue
             seen.add((task, campaign.protocol))
-            try:
-                if campaign.protocol == "zoo":  # rl-zoo3's own envs, as its training registers them
-                    importlib.import_module("rl_zoo3.import_envs")
-                gymnasium.make(task).close()
-            except Exception as error:
-                problems.append(f"  {study.study_name}: {task}: {type(error).__name__}: {error}")
+            problems += [f"  {study.study_name}: {problem}" for problem in unmakeable(campaign.protocol, [task])]
     if problems:
-        raise SystemExit("These tasks cannot be made on this machine, so no worker started (the benchmarks' "
+        raise SystemExit("These tasks cannot be trained on this machine, so no worker started (the benchmarks' "
                          'dependencies: pip install -e ".[zoo,mujoco,box2d]"):\n' + "\n".join(problems))  # fmt: skip
 
 
@@ -152,6 +197,8 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
         print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete, "
               f"{pending(study, campaign)} waiting", flush=True)  # fmt: skip
         studies.append((study, campaign))
+        if failed(study, campaign):
+            print(f"{name}: {failed_text(study, campaign)}", flush=True)
     check_tasks(studies)
     command = [sys.executable, str(SCRIPT), "work", "--campaign", *names]
     command += ["--stale-after", str(stale_after)]
@@ -169,10 +216,29 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
         return sum(done(study, campaign) for study, campaign in studies)
 
     total = sum(len(campaign.grid) for _, campaign in studies)
-    with tqdm(total=total, initial=complete(), desc=" ".join(names), unit="trial", disable=None) as bar:
-        while any(process.poll() is None for process in processes):
-            time.sleep(10)
-            bar.update(complete() - bar.n)
+    try:
+        with tqdm(total=total, initial=complete(), desc=" ".join(names), unit="trial", disable=None) as bar:
+            while any(process.poll() is None for process in processes):
+                time.sleep(10)
+                bar.update(complete() - bar.n)
+    except KeyboardInterrupt:  # Ctrl-C: the workers stop their trials (marked interrupted) and exit
+        stop()
     codes = [process.wait() for process in processes]
+    if codes and all(code == STOPPED for code in codes):
+        raise SystemExit(f"{' '.join(names)}: stopped; the same run command goes on (a stopped trial from its checkpoint)")
     if any(codes):
         raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
+    unfinished = [f"{name}: {failed_text(study, campaign)}" for name, (study, campaign) in zip(names, studies)
+                  if failed(study, campaign)]  # fmt: skip
+    if unfinished:
+        raise SystemExit("\n".join(unfinished))
+
+
+def failed(study: optuna.Study, campaign: Campaign) -> int:
+    """Grid points without a complete trial whose latest trial's training raised."""
+    return sum(bool(trials) and raised(trials[-1]) for trials in grid_states(study, campaign).values())
+
+
+def failed_text(study: optuna.Study, campaign: Campaign) -> str:
+    return (f"{failed(study, campaign)} grid points failed: their training raised (the status shows each one's "
+            "exception; run --retry-raised enqueues them again once the cause is mended)")  # fmt: skip
