@@ -7,7 +7,8 @@ rl-zoo3's EvalCallback evaluates every ``--eval-freq`` steps (``--eval-episodes`
 ``evaluations.npz`` becomes one JSON file per run. The runs are scheduled by the campaign engine (``campaign.py``,
 protocol ``zoo``): one Optuna study per invocation in ``<out>/campaign.journal``, ``--workers`` processes with one torch
 thread each, an interrupted sweep resumed by the same command (the runs of dead workers enqueued again); the
-finished runs are written to ``<out>`` as JSON, and tasks, variants and seeds whose runs all have one are skipped.
+finished runs are written to ``<out>`` as JSON, and tasks, variants and seeds whose runs all have one are skipped
+(runs of other steps or evaluation settings in ``<out>`` are refused: give another ``--out``).
 
     # SB3's defaults (docs/results-sb3-defaults.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4

@@ -46,9 +46,18 @@ def test_learning_benchmark_through_the_zoo(tmp_path):
     assert "best-so-far at the baseline's CPU time" in stdout
     assert (tmp_path / "curves.png").stat().st_size > 0
     # finished runs are skipped on a second call
-    again = _run(str(ROOT / "benchmarks" / "learning.py"), "--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0",
-                 "--timesteps", "2048", "--out", str(out), cwd=ROOT)  # fmt: skip
+    settings = ["--env", "InvertedPendulum-v5", "--variants", "ppo", "--seeds", "0", "--eval-episodes", "2", "--out", str(out)]
+    again = _run(str(ROOT / "benchmarks" / "learning.py"), *settings, "--timesteps", "2048", "--eval-freq", "1024", cwd=ROOT)
     assert "max" not in again.split("**")[0]  # no run message before the report
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from engine import commands
+
+    differ = r"holds runs of other settings.*seed0.json \(timesteps 2048 not 4096, eval_freq 1024 not 20000\)"
+    with pytest.raises(SystemExit, match=differ):
+        commands.learning_main([*settings, "--timesteps", "4096"])  # never reported as runs of other settings
+    with pytest.raises(SystemExit):
+        commands.learning_main(["--report", "--out", str(tmp_path / "nothing")])  # a usage error, no folder made
+    assert not (tmp_path / "nothing").exists()
     # the training logs of the same runs: kept compactly, and reported around each run's peak
     report = _run(str(ROOT / "benchmarks" / "training_logs.py"), "--out", str(out), "--env", "InvertedPendulum-v5",
                   "--plot", str(tmp_path / "logs.png"), cwd=ROOT)  # fmt: skip

@@ -148,6 +148,8 @@ def learning_main(argv: list[str] | None = None, description: str | None = None)
         "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
     )
     args = parser.parse_args(argv)
+    if args.report and not any(args.out.glob("*.json")):
+        parser.error(f"--report: no runs in {args.out}")
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.report:
         schedule(args)
@@ -160,8 +162,14 @@ def learning_main(argv: list[str] | None = None, description: str | None = None)
 def schedule(args: argparse.Namespace) -> None:
     """The requested runs without a JSON in ``--out``, as a campaign of protocol zoo (the study named by its
     definition, in ``<out>/campaign.journal``), then every finished run of it written to ``--out``."""
-    missing = [(t, v, s) for t in args.env for v in args.variants for s in args.seeds
-               if not (args.out / f"{run_name(t, v, s)}.json").exists()]  # fmt: skip
+    asked = [(t, v, s) for t in args.env for v in args.variants for s in args.seeds]
+    records = {point: args.out / f"{run_name(*point)}.json" for point in asked}
+    other = [f"{path.name} ({', '.join(differ)})" for path in records.values()
+             if path.exists() and (differ := settings_differ(json.loads(path.read_text()), args))]  # fmt: skip
+    if other:
+        raise SystemExit(f"{args.out} holds runs of other settings, which would be reported as these: {', '.join(other)}; "
+                         "give another --out")  # fmt: skip
+    missing = [point for point, path in records.items() if not path.exists()]
     if not missing:
         return
     conf = None if args.conf is None else str(args.conf.resolve())
@@ -174,6 +182,17 @@ def schedule(args: argparse.Namespace) -> None:
         run([name], journal, args.workers, stale_after=1800.0)
     finally:
         export(study, args.out)
+
+
+def settings_differ(record: dict, args: argparse.Namespace) -> list[str]:
+    """The settings of a run's record (its steps, and its evaluation's in its rl-zoo3 command) that differ from
+    ``args``', as ``name: record's, asked``."""
+    words = record.get("command", "").split()
+    held = {"timesteps": record.get("timesteps")}
+    for flag, name in (("--eval-freq", "eval_freq"), ("--eval-episodes", "eval_episodes")):
+        if flag in words[:-1]:
+            held[name] = int(words[words.index(flag) + 1])
+    return [f"{name} {value} not {getattr(args, name)}" for name, value in held.items() if value != getattr(args, name)]
 
 
 def export(study: optuna.Study, out: pathlib.Path) -> None:
