@@ -54,7 +54,7 @@ def _study(name: str, journal: pathlib.Path) -> optuna.Study:
     return storage.open_study(name, storage.storage_of(name, str(journal)))[0]
 
 
-def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
+def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path, capsys):
     journal = tmp_path / "tiny.journal"
     definition = _definition("ppo", "opr-e2e")
     stdout = _campaign("run", "--campaign", "tiny", "--storage", str(journal), "--workers", "2", *definition)
@@ -85,8 +85,9 @@ def test_campaign_runs_its_grid_resumes_from_the_journal_and_reports(tmp_path):
         assert f"#{trial.number}:COMPLETE (max average return {trial.value:.0f})" in shown
     assert "nothing left to run" in shown.splitlines()[-1]
     # a stored campaign is never redefined
-    with pytest.raises(ValueError, match="never changes"):
+    with pytest.raises(SystemExit):  # a usage error
         _campaign_main("run", "--campaign", "tiny", "--storage", str(journal), *_definition("ppo"))
+    assert "a campaign's definition never changes" in capsys.readouterr().err
     # the report, from the storage alone
     text = engine.report.report(["tiny"], str(journal), "ppo", 2, tmp_path / "curves.png")
     value = {t.params["variant"]: t.value for t in trials}
@@ -754,6 +755,8 @@ def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
     assert "protocol 'sac' needs a Box action space, the task's is Discrete(2)" in box
     assert "No campaign 'mine' in " in campaign("status", "--campaign", "mine", "--storage", journal)
     assert "--retry-raised is an option of run" in campaign("status", "--campaign", "table1", "--retry-raised")
+    alone = campaign("run", "--campaign", "mine", "--storage", journal, "--eval-freq", "5")
+    assert "belong to a new campaign's definition" in alone
     assert not (tmp_path / "mine.journal").exists()  # none of these stored a definition
     tiny = definitions.Campaign("sb3", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
     storage.open_study("mine", storage.storage_of("mine", journal), tiny)

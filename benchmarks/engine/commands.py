@@ -47,12 +47,14 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     new.add_argument("--variants", nargs="+")
     new.add_argument("--seeds", nargs="+", type=int)
     new.add_argument("--timesteps", type=int)
-    new.add_argument("--eval-freq", type=int, default=20_000)
-    new.add_argument("--eval-episodes", type=int, default=10)
+    new.add_argument("--eval-freq", type=int, default=None, help="default: 20000")
+    new.add_argument("--eval-episodes", type=int, default=None, help="default: 10")
     new.add_argument("--conf", help="protocol zoo: the rl-zoo3 hyperparameter file of every variant (in the repository)")
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     defining = args.protocol or args.tasks or args.variants or args.seeds or args.timesteps
+    if not defining and (args.eval_freq, args.eval_episodes, args.conf) != (None, None, None):
+        parser.error("--eval-freq, --eval-episodes and --conf belong to a new campaign's definition (with --protocol, ...)")
     if args.retry_raised and args.command != "run":
         parser.error("--retry-raised is an option of run")
     if defining:
@@ -62,8 +64,10 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
         if len(args.campaign) > 1:
             parser.error("define one campaign at a time")
         try:
+            evaluation = (20_000 if args.eval_freq is None else args.eval_freq,
+                          10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
             given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
-                             args.eval_freq, args.eval_episodes, args.conf)  # fmt: skip
+                             *evaluation, args.conf)  # fmt: skip
         except ValueError as error:
             parser.error(str(error))
         problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
@@ -148,6 +152,7 @@ def learning_main(argv: list[str] | None = None, description: str | None = None)
         "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
     )
     args = parser.parse_args(argv)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
     if args.report and not any(args.out.glob("*.json")):
         parser.error(f"--report: no runs in {args.out}")
     args.out.mkdir(parents=True, exist_ok=True)
