@@ -745,7 +745,11 @@ def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
     journal = str(tmp_path / "mine.journal")
     define = ["run", "--campaign", "mine", "--storage", journal, "--protocol", "sb3", "--variants", "ppo"]
     campaign = functools.partial(_refused, commands.campaign_main, capsys)
-    assert campaign(*define, "--tasks", TASK, "--seeds", "0", "0", "--timesteps", "4000").endswith("seeds [0] given twice")
+    twice = campaign(*define, "--tasks", TASK, "--seeds", "0", "0", "--timesteps", "4000", "--eval-freq", "2000")
+    assert twice.endswith("seeds [0] given twice")
+    stored = definitions.Campaign("sac", (TASK,), ("sac",), (0,), 3000, 1000, 2)  # read as stored, refused as new
+    with pytest.raises(ValueError, match="trains from step 10,000 on"):
+        stored.check_new()
     assert "eval_freq at most timesteps" in campaign(*define, "--tasks", TASK, "--seeds", "0", "--timesteps", "4000")
     typo = campaign(*define, "--tasks", "InvertedPendulm-v5", "--seeds", "0", "--timesteps", "4000", "--eval-freq", "2000")
     assert "cannot be trained here: InvertedPendulm-v5: NameNotFound" in typo

@@ -68,6 +68,7 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
                           10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
             given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
                              *evaluation, args.conf)  # fmt: skip
+            given.check_new()
         except ValueError as error:
             parser.error(str(error))
         problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good

@@ -181,16 +181,20 @@ class Campaign:
             )
         if not (self.tasks and self.variants and self.seeds):
             raise ValueError("A campaign needs at least one task, one variant and one seed")
-        for name in ("tasks", "variants", "seeds"):
-            values = list(getattr(self, name))
-            if len(set(values)) < len(values):
-                raise ValueError(f"{name} {sorted({v for v in values if values.count(v) > 1})} given twice")
         if self.protocol != "zoo" and self.conf is not None:
             raise ValueError("only protocol 'zoo' takes a conf (an rl-zoo3 hyperparameter file)")
         if self.conf is not None and not (ROOT / self.conf).is_file():
             raise ValueError(f"No hyperparameter file {self.conf!r} in the repository")
         if min(self.timesteps, self.eval_freq, self.eval_episodes) <= 0 or self.eval_freq > self.timesteps:
             raise ValueError("timesteps, eval_freq and eval_episodes must be positive, eval_freq at most timesteps")
+
+    def check_new(self) -> None:
+        """What a new definition must also meet (a stored one is read as it was): no task, variant or seed twice, and
+        more steps than the protocol's random steps before its first update (SAC's ``learning_starts``)."""
+        for name in ("tasks", "variants", "seeds"):
+            values = list(getattr(self, name))
+            if len(set(values)) < len(values):
+                raise ValueError(f"{name} {sorted({v for v in values if values.count(v) > 1})} given twice")
         starts = OFF_POLICY[self.protocol][2].get("learning_starts", 0) if self.protocol in OFF_POLICY else 0
         if self.timesteps <= starts:
             raise ValueError(f"protocol {self.protocol!r} trains from step {starts:,} on: give more timesteps")
