@@ -134,7 +134,10 @@ def plot(runs, png: pathlib.Path, normalized: dict[str, aggregate.TaskScores]) -
     ax.set_title("performance profile", fontsize=9)
     ax.set_xlabel("max average return / baseline's mean")
     ax.set_ylabel("fraction of runs above")
-    ax.legend(fontsize=7)
+    if normalized:
+        ax.legend(fontsize=7)
+    else:  # no task where the baseline's mean is positive (the report says so)
+        ax.text(0.5, 0.5, "no task to compare", ha="center", va="center", transform=ax.transAxes, fontsize=8)
     axes[1][-1].axis("off")
     figure.tight_layout()
     png.parent.mkdir(parents=True, exist_ok=True)
