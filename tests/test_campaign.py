@@ -207,7 +207,7 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
                                             user_attrs=user_attrs, system_attrs=system_attrs))  # fmt: skip
 
     add(0, interrupted="stopped")  # SIGINT / SIGTERM
-    add(1)  # its training raised: it stays failed
+    add(1, error="RuntimeError: a NaN")  # its training raised: it stays failed
     for attempt in range(storage.MAX_RETRY + 1):  # trials 2-5: its worker died once and on each retry
         add(2, {"retry_history": list(range(2, 2 + attempt))} if attempt else None, interrupted="worker gone")
     for attempt in range(storage.MAX_RETRY + 2):  # trials 6-10: stopped again and again, never dead
@@ -219,15 +219,20 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     assert storage.pending(study, tiny) == 3  # seeds 0 and 3 again and seed 4, never started; not seeds 1 and 2
     results.status_of("recover", str(tmp_path / "r.journal"))
     shown = capsys.readouterr().out  # why each failed trial stopped
-    assert "seed 0: #0:FAIL (interrupted: stopped) #11:WAITING\n" in shown and "seed 1: #1:FAIL (raised)\n" in shown
+    assert "seed 0: #0:FAIL (interrupted: stopped) #11:WAITING\n" in shown
+    assert "seed 1: #1:FAIL (raised RuntimeError: a NaN)\n" in shown
     assert "seed 2: #2:FAIL (interrupted: worker gone) #3:FAIL (interrupted: worker gone)" in shown
-    # a dead worker's trial that Optuna's heartbeat failed and retried (RDBStorage) carries no attribute of ours
+    # a failed trial without a reason kept: on a database, Optuna's heartbeat failed it (and retries it itself); on a
+    # journal, a stop reached it as it marked itself: tried again
     failed = optuna.create_trial(state=TrialState.FAIL)
-    assert results.trial_outcome(failed) == " (raised)"
-    assert results.trial_outcome(failed, retried=True) == " (interrupted: worker gone, retried)"
+    assert results.trial_outcome(failed, database=True) == " (interrupted: worker gone)"
+    assert results.trial_outcome(failed) == " (failed: no reason kept, tried again)"
+    study.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 4},
+                                        distributions=distributions))  # fmt: skip
+    assert storage.recover(study, tiny) == [13] and not storage.raised(study.trials[13])
     notes = results.collect(["recover"], str(tmp_path / "r.journal"))[2]
     assert notes == [
-        f"{TASK} ppo seed 1: trial 1 failed (its training raised)",
+        f"{TASK} ppo seed 1: trial 1 failed (its training raised RuntimeError: a NaN)",
         f"{TASK} ppo seed 2: trial 5's worker died {storage.MAX_RETRY + 1} times: not retried again",
     ]
     with pytest.raises(ValueError, match="Unknown variants \\['opr'\\] of protocol 'paper'"):
@@ -238,7 +243,7 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
 
 @pytest.mark.parametrize("kind", ["journal", "database"])
 def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_point(tmp_path, monkeypatch, capsys, kind):
-    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3), 4000, 2000, 2)
     where = str(tmp_path / "r.journal") if kind == "journal" else f"sqlite:///{tmp_path / 'r.db'}"  # Optuna's heartbeat
     study, _ = storage.open_study("raise", storage.storage_of("raise", where), tiny)
     assert storage.on_database(study) == (kind == "database")  # through the cache Optuna wraps a database in
@@ -282,6 +287,14 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
     assert storage.recover(study, tiny, retry_raised=True) == [2, 5]  # seed 0 again too
     results.status_of("raise", where)
     assert "seed 2: #5:FAIL (raised RuntimeError: a NaN in the update) #7:WAITING\n" in capsys.readouterr().out
+    # a trial without a reason kept: on a database, one Optuna's heartbeat failed (its retries are Optuna's); on a
+    # journal, a stop that cut its marking short: tried again, never counted as raised
+    study.add_trial(optuna.create_trial(state=TrialState.FAIL, params={**params, "seed": 3}, distributions=distributions))
+    assert workers.failed(study, tiny) == 0  # seeds 0 and 2 wait again; seed 3 kept no exception
+    assert storage.recover(study, tiny, retry_raised=True) == ([] if kind == "database" else [8])
+    results.status_of("raise", where)
+    outcome = "(interrupted: worker gone)\n" if kind == "database" else "(failed: no reason kept, tried again) #9:WAITING\n"
+    assert f"seed 3: #8:FAIL {outcome}" in capsys.readouterr().out
 
 
 def test_run_stops_before_any_worker_where_a_task_left_to_train_cannot_be_made(tmp_path, monkeypatch):
@@ -356,7 +369,7 @@ def test_a_worker_with_nothing_left_waits_for_running_trials_and_runs_one_whose_
 
 
 def test_the_report_names_the_runs_that_went_on_from_a_checkpoint_in_one_line(tmp_path):
-    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1, 2, 3), 4000, 2000, 2)
     journal = str(tmp_path / "c.journal")
     study, _ = storage.open_study("resumed", storage.storage_of("resumed", journal), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
@@ -773,6 +786,34 @@ def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
     )
     commands.campaign_report_main(["--campaign", "mine", "--storage", journal, "--out", str(tmp_path / "new" / "out")])
     assert (tmp_path / "new" / "out" / "report.md").read_text().startswith("Campaigns mine: 0 of 1 runs complete.")
+
+
+def test_a_stored_definition_given_again_is_read_as_it_was(tmp_path, capsys):
+    journal = str(tmp_path / "old.journal")
+    old = definitions.Campaign("sac", (TASK,), ("sac",), (0,), 5000, 1000, 2)  # fewer steps than SAC's learning_starts
+    storage.open_study("old", storage.storage_of("old", journal), old)
+    commands.campaign_main(["status", "--campaign", "old", "--storage", journal, "--protocol", "sac", "--tasks", TASK,
+                            "--variants", "sac", "--seeds", "0", "--timesteps", "5000", "--eval-freq", "1000",
+                            "--eval-episodes", "2"])  # fmt: skip
+    assert "old: 0/1 grid points complete" in capsys.readouterr().out
+
+
+def test_a_kept_exception_is_one_line_with_its_start_and_end():
+    text = workers.error_text(RuntimeError("run: FAILED (see err)\n" + "x" * 1000 + "\nValueError: the last line"))
+    assert len(text) == workers.ERROR_LENGTH and "\n" not in text
+    assert text.startswith("RuntimeError: run: FAILED (see err) xxx") and text.endswith("xxx ValueError: the last line")
+    assert workers.error_text(ValueError("short")) == "ValueError: short"
+
+
+def test_a_stopped_worker_ignores_a_second_signal_while_it_marks_its_trial():
+    saved = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            workers._stop()
+        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, saved[0])
+        signal.signal(signal.SIGTERM, saved[1])
 
 
 def test_a_stopped_worker_exits_quietly_and_a_failed_grid_point_is_named(tmp_path, monkeypatch):

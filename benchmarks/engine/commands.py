@@ -11,10 +11,10 @@ import pathlib
 import optuna
 
 from . import training_logs, zoo_report
-from .definitions import CAMPAIGN_DIR, CAMPAIGNS, OFF_POLICY, VARIANTS, ZOO_VARIANTS, Campaign
+from .definitions import CAMPAIGNS, OFF_POLICY, VARIANTS, ZOO_VARIANTS, Campaign
 from .report import report, summary
 from .results import status
-from .storage import open_study, storage_of
+from .storage import is_stored, open_study, storage_of
 from .workers import run, unmakeable, work
 from .zoo import run_name
 
@@ -57,48 +57,48 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
         parser.error("--eval-freq, --eval-episodes and --conf belong to a new campaign's definition (with --protocol, ...)")
     if args.retry_raised and args.command != "run":
         parser.error("--retry-raised is an option of run")
+    given = None
     if defining:
         missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
         if missing:
             parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
         if len(args.campaign) > 1:
             parser.error("define one campaign at a time")
+        evaluation = (20_000 if args.eval_freq is None else args.eval_freq,
+                      10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
         try:
-            evaluation = (20_000 if args.eval_freq is None else args.eval_freq,
-                          10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
             given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
                              *evaluation, args.conf)  # fmt: skip
-            given.check_new()
+            if not is_stored(args.campaign[0], args.storage):  # a stored definition is read as it was
+                given.check_new()
+                problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
+                if problems:
+                    raise ValueError(f"these tasks cannot be trained here: {'; '.join(problems)}")
         except ValueError as error:
             parser.error(str(error))
-        problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
-        if problems:
-            parser.error(f"these tasks cannot be trained here: {'; '.join(problems)}")
-    try:
-        known(args.campaign, args.storage, defined=bool(defining))
-        if defining:
-            open_study(args.campaign[0], storage_of(args.campaign[0], args.storage), given)
-        if args.command == "run":
-            run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
-        elif args.command == "work":
-            work(args.campaign, args.storage, args.stale_after)
-        else:
-            status(args.campaign, args.storage, args.workers)
-    except ValueError as error:  # an unknown campaign, or one given again with another definition
+    try:  # an unknown campaign, or one given again with another definition
+        opened(args.campaign, args.storage, given)
+    except ValueError as error:
         parser.error(str(error))
+    if args.command == "run":
+        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
+    elif args.command == "work":
+        work(args.campaign, args.storage, args.stale_after)
+    else:
+        status(args.campaign, args.storage, args.workers)
 
 
-def known(names: list[str], storage: str | None, defined: bool = False) -> None:
-    """A ValueError for a campaign that is neither the repository's, nor in its journal file, nor being defined (so
-    that a mistyped name leaves no empty journal behind)."""
+def opened(names: list[str], storage: str | None, given: Campaign | None = None) -> list[Campaign]:
+    """The campaigns, their studies opened (the first one created with ``given``); a ValueError for a campaign that
+    is neither the repository's nor in the storage (a mistyped name leaves no empty journal file behind), or one
+    given again with another definition."""
     for name in names:
-        if name in CAMPAIGNS or (defined and name == names[0]) or (storage and "://" in storage):
-            continue
-        path = pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{name}.journal"
-        if not path.exists():
-            where = f"in {path}" if storage else f"in the repository ({sorted(CAMPAIGNS)})"
+        stored = name in CAMPAIGNS or (given is not None and name == names[0]) or is_stored(name, storage)
+        if not stored:
+            where = f"in {storage}" if storage else f"in the repository ({sorted(CAMPAIGNS)})"
             raise ValueError(f"No campaign {name!r} {where}: give --protocol, --tasks, --variants, --seeds and "
                              "--timesteps to define a new one (campaign.py), or --storage where it is")  # fmt: skip
+    return [open_study(name, storage_of(name, storage), given if i == 0 else None)[1] for i, name in enumerate(names)]
 
 
 def campaign_report_main(argv: list[str] | None = None, description: str | None = None) -> None:
@@ -114,8 +114,8 @@ def campaign_report_main(argv: list[str] | None = None, description: str | None 
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
-        known(args.campaign + (args.beside or []), args.storage)
-        campaigns = [open_study(name, storage_of(name, args.storage))[1] for name in args.campaign]
+        campaigns = opened(args.campaign, args.storage)
+        opened(args.beside or [], args.storage)
     except ValueError as error:
         parser.error(str(error))
     protocols = {c.protocol for c in campaigns}
@@ -148,6 +148,7 @@ def learning_main(argv: list[str] | None = None, description: str | None = None)
     parser.add_argument("--baseline", default="ppo", choices=list(ZOO_VARIANTS), help="the variant the report compares to")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/learning"))
     parser.add_argument("--report", action="store_true", help="only print the table of the results in --out")
+    parser.add_argument("--retry-raised", action="store_true", help="train again the runs whose training raised")
     parser.add_argument("--plot", type=pathlib.Path, default=None, help="also write learning curves to this PNG")
     parser.add_argument(
         "--paired", action="store_true", help="per-second views against the baseline run of each seed (several machines)"
@@ -185,7 +186,7 @@ def schedule(args: argparse.Namespace) -> None:
     name, journal = f"learning-{digest}", str(args.out / "campaign.journal")
     study, _ = open_study(name, storage_of(name, journal), grid)
     try:
-        run([name], journal, args.workers, stale_after=1800.0)
+        run([name], journal, args.workers, stale_after=1800.0, retry_raised=args.retry_raised)
     finally:
         export(study, args.out)
 

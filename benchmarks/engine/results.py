@@ -135,24 +135,22 @@ def status_of(name: str, storage: str | None) -> None:
     for trial in study.get_trials(deepcopy=False):
         counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
     print(f"{name}: {done(study, campaign)}/{len(campaign.grid)} grid points complete; trials by state {counts}")
-    # a database: a failed trial that Optuna's heartbeat enqueued again (a journal file marks its dead workers' trials)
-    heartbeat = on_database(study)
-    retries = [t for t in study.get_trials(deepcopy=False) if heartbeat and not t.system_attrs.get("raised_retry")]
-    retried = {t.system_attrs.get("failed_trial") for t in retries}
+    database = on_database(study)
     for (task, variant, seed), trials in grid_states(study, campaign).items():
-        states = " ".join(f"#{t.number}:{t.state.name}{trial_outcome(t, t.number in retried)}" for t in trials)
+        states = " ".join(f"#{t.number}:{t.state.name}{trial_outcome(t, database)}" for t in trials)
         print(f"  {task:28s} {variant:26s} seed {seed}: {states or '-'}")
 
 
-def trial_outcome(trial: Any, retried: bool = False) -> str:
-    """What the status adds to a trial's state: its max average return, or why a failed one stopped (an interruption:
-    the worker was stopped or died, and the grid point is tried again; a failed trial that Optuna's heartbeat retried
-    (``retried``); else its training raised, with the exception where the trial kept it)."""
+def trial_outcome(trial: Any, database: bool = False) -> str:
+    """What the status adds to a trial's state: its max average return, or why a failed one stopped: interrupted (the
+    worker was stopped or died, and the grid point is tried again), its training raised (with the exception), or,
+    without a reason kept, a dead worker that Optuna's heartbeat failed (a ``database``) or an unknown one."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
     if trial.state != TrialState.FAIL:
         return ""
-    reason = trial.user_attrs.get("interrupted") or ("worker gone, retried" if retried else "")
-    if reason:
-        return f" (interrupted: {reason})"
-    return f" (raised {trial.user_attrs['error']})" if trial.user_attrs.get("error") else " (raised)"
+    if trial.user_attrs.get("interrupted"):
+        return f" (interrupted: {trial.user_attrs['interrupted']})"
+    if "error" in trial.user_attrs:
+        return f" (raised {trial.user_attrs['error']})"
+    return " (interrupted: worker gone)" if database else " (failed: no reason kept, tried again)"

@@ -48,9 +48,21 @@ def storage_of(campaign: str, storage: str | None = None) -> optuna.storages.Bas
                 if attempt == 2:
                     raise
                 time.sleep(1.0 + attempt)
-    path = pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{campaign}.journal"
+    path = journal_path(campaign, storage)
     path.parent.mkdir(parents=True, exist_ok=True)
     return JournalStorage(JournalFileBackend(str(path)))
+
+
+def journal_path(campaign: str, storage: str | None = None) -> pathlib.Path:
+    """The journal file of a campaign: ``storage`` (not a database URL), or the repository's."""
+    return pathlib.Path(storage) if storage else CAMPAIGN_DIR / f"{campaign}.journal"
+
+
+def is_stored(campaign: str, storage: str | None = None) -> bool:
+    """Whether the storage holds the campaign's study (a journal file that does not exist is not created)."""
+    if not (storage and "://" in storage) and not journal_path(campaign, storage).exists():
+        return False
+    return campaign in {summary.study_name for summary in optuna.get_all_study_summaries(storage_of(campaign, storage))}
 
 
 def open_study(
@@ -100,8 +112,10 @@ def grid_states(study: optuna.Study, campaign: Campaign) -> dict[tuple[str, str,
     return states
 
 
-def _interrupted(trial: FrozenTrial) -> bool:
-    return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted"))
+def _interrupted(trial: FrozenTrial, database: bool = False) -> bool:
+    """A failed trial that was stopped or lost its worker, or one that kept no reason: on a journal, a stop that
+    reached it as it marked itself (or a trial of an older version); on a database, Optuna's heartbeat failed it."""
+    return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted") or not (database or raised(trial)))
 
 
 def on_database(study: optuna.Study) -> bool:
@@ -111,8 +125,8 @@ def on_database(study: optuna.Study) -> bool:
 
 
 def raised(trial: FrozenTrial) -> bool:
-    """Whether a failed trial's training raised (it was neither stopped nor left by its worker)."""
-    return trial.state == TrialState.FAIL and not trial.user_attrs.get("interrupted")
+    """Whether a failed trial's training raised (it kept its exception)."""
+    return trial.state == TrialState.FAIL and not trial.user_attrs.get("interrupted") and "error" in trial.user_attrs
 
 
 def _alive(worker: dict[str, Any], stale_after: float, heartbeat: float | None) -> bool:
@@ -171,12 +185,12 @@ def recover(study: optuna.Study, campaign: Campaign, stale_after: float = 1800.0
             continue
         latest = trials[-1]
         history = latest.system_attrs.get("retry_history", [])
-        again = _interrupted(latest) and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}})
+        again = _interrupted(latest, database)
+        again = again and not retried_enough(latest, {**by_number, **{t.number: t for t in trials}})
         if again or (retry_raised and raised(latest)):
             # Optuna's retry (as RetryHeartbeatStaleTrialCallback enqueues it), without the failed run's attributes
-            marks = {"raised_retry": True} if not again else {}  # not a dead worker's (the status tells them apart)
             enqueue(study, grid_point(latest), failed_trial=latest.system_attrs.get("failed_trial", latest.number),
-                    retry_history=[*history, latest.number], **marks)  # fmt: skip
+                    retry_history=[*history, latest.number])  # fmt: skip
             retried.append(latest.number)
     return retried
 

@@ -39,6 +39,8 @@ from .training import provenance, train
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
 #: The exit status of a worker stopped by SIGINT or SIGTERM (a shell's for SIGINT)
 STOPPED = 130
+#: Seconds ``run`` waits, after Ctrl-C, for its workers to stop on their own before it sends them SIGTERM
+STOP_GRACE = 30.0
 #: The characters of a training's exception kept in its trial
 ERROR_LENGTH = 300
 
@@ -68,8 +70,10 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
         except (KeyboardInterrupt, SystemExit):
             trial.set_user_attr("interrupted", "stopped")
             raise
+        except optuna.TrialPruned:
+            raise
         except Exception as error:  # the status and the report say why it failed
-            trial.set_user_attr("error", f"{type(error).__name__}: {error}"[:ERROR_LENGTH])
+            trial.set_user_attr("error", error_text(error))
             raise
         return result["max_average_return"]
 
@@ -90,8 +94,21 @@ def _yields(trial: FrozenTrial, other: FrozenTrial) -> bool:
     return False
 
 
+def error_text(error: BaseException) -> str:
+    """An exception on one line, at most ``ERROR_LENGTH`` characters: its start and its end (a failed rl-zoo3 run's
+    is its log's tail, whose last line names the error)."""
+    text = " ".join(f"{type(error).__name__}: {error}".split())
+    if len(text) <= ERROR_LENGTH:
+        return text
+    head = ERROR_LENGTH // 3
+    return f"{text[:head]} … {text[-(ERROR_LENGTH - head - 3) :]}"
+
+
 def _stop(*_: Any) -> None:
-    """SIGTERM: stop as SIGINT does (the trial is marked interrupted and enqueued again by the next ``run``)."""
+    """SIGINT, SIGTERM: the trial is marked interrupted (and enqueued again by the next ``run``); a second signal while
+    it stops is ignored, so that it cannot cut the marking short."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise KeyboardInterrupt
 
 
@@ -115,6 +132,7 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
     """Trials of the campaigns one after another, each campaign's grid before the next one's; then, while other
     workers run the last grid points, it waits, and runs any whose worker dies."""
     signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
     studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
@@ -221,7 +239,10 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
             while any(process.poll() is None for process in processes):
                 time.sleep(10)
                 bar.update(complete() - bar.n)
-    except KeyboardInterrupt:  # Ctrl-C: the workers stop their trials (marked interrupted) and exit
+    except KeyboardInterrupt:  # Ctrl-C reached the workers too: they mark their trials and exit; else stop them
+        deadline = time.monotonic() + STOP_GRACE
+        while time.monotonic() < deadline and any(process.poll() is None for process in processes):
+            time.sleep(0.5)
         stop()
     codes = [process.wait() for process in processes]
     if codes and all(code == STOPPED for code in codes):
@@ -241,4 +262,4 @@ def failed(study: optuna.Study, campaign: Campaign) -> int:
 
 def failed_text(study: optuna.Study, campaign: Campaign) -> str:
     return (f"{failed(study, campaign)} grid points failed: their training raised (the status shows each one's "
-            "exception; run --retry-raised enqueues them again once the cause is mended)")  # fmt: skip
+            "exception; the same command with --retry-raised trains them again once the cause is mended)")  # fmt: skip
