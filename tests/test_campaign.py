@@ -298,17 +298,19 @@ def test_recover_leaves_a_retry_whose_training_raised_and_prunes_a_taken_grid_po
 
 
 def test_run_stops_before_any_worker_where_a_task_left_to_train_cannot_be_made(tmp_path, monkeypatch):
-    tiny = definitions.Campaign("paper", (TASK, "NoSuchTask-v0", "Pendulum-v1"), ("ppo",), (0,), 4000, 2000, 2)
+    tiny = definitions.Campaign("paper", (TASK, "NoSuchTask-v0", "Pendulum-v1", "CartPole-v1"), ("ppo",), (0,), 4000, 2000, 2)
     study, _ = storage.open_study("made", storage.storage_of("made", str(tmp_path / "m.journal")), tiny)
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, distributions=distributions,
                                         params={"task": "Pendulum-v1", "variant": "ppo", "seed": 0}))  # fmt: skip
+    study.add_trial(optuna.create_trial(state=TrialState.FAIL, distributions=distributions, user_attrs={"error": "x"},
+                                        params={"task": "CartPole-v1", "variant": "ppo", "seed": 0}))  # fmt: skip
     made, make = [], workers.gymnasium.make
     monkeypatch.setattr(workers.gymnasium, "make", lambda task: made.append(task) or make(task))
     monkeypatch.setattr(workers.subprocess, "Popen", lambda *args, **kwargs: pytest.fail("a worker started"))
     with pytest.raises(SystemExit, match=r"(?s)cannot be trained on this machine.*made: NoSuchTask-v0: NameNotFound"):
         workers.run(["made"], str(tmp_path / "m.journal"), workers=1, stale_after=1800.0)
-    assert made == [TASK, "NoSuchTask-v0"]  # not the task whose grid point is complete
+    assert made == [TASK, "NoSuchTask-v0"]  # not the tasks whose grid points are complete or failed for good
 
 
 def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_path, monkeypatch):

@@ -187,12 +187,14 @@ def unmakeable(protocol: str, tasks: tuple[str, ...] | list[str]) -> list[str]:
 
 
 def check_tasks(studies: list[tuple[optuna.Study, Campaign]]) -> None:
-    """Each task with a grid point left to train checked by :func:`unmakeable`, so that a missing dependency stops
-    ``run`` with its reason before any trial fails of it."""
+    """Each task with a grid point that will train (never started, enqueued, or running: it may be taken over)
+    checked by :func:`unmakeable`, so that a missing dependency stops ``run`` with its reason before any trial fails
+    of it."""
     problems, seen = [], set()
+    will_run = (TrialState.WAITING, TrialState.RUNNING)
     for study, campaign in studies:
         for (task, _, _), trials in grid_states(study, campaign).items():
-            if (task, campaign.protocol) in seen or any(t.state == TrialState.COMPLETE for t in trials):
+            if (task, campaign.protocol) in seen or (trials and trials[-1].state not in will_run):
                 continue
             seen.add((task, campaign.protocol))
             problems += [f"  {study.study_name}: {problem}" for problem in unmakeable(campaign.protocol, [task])]
