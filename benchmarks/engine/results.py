@@ -43,9 +43,8 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
                 if len(complete) > 1:
                     notes.append(f"{task} {label} seed {seed} completed {len(complete)} times: the first one counts")
             elif trials and raised(trials[-1]):
-                error = trials[-1].user_attrs.get("error")
-                why = f"its training raised {error}" if error else "its training raised"
-                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed ({why})")
+                error = trials[-1].user_attrs["error"]
+                notes.append(f"{task} {label} seed {seed}: trial {trials[-1].number} failed (its training raised {error})")
             elif trials and retried_enough(trials[-1], by_number):
                 died = f"trial {trials[-1].number}'s worker died {deaths(trials[-1], by_number)} times"
                 notes.append(f"{task} {label} seed {seed}: {died}: not retried again")

@@ -113,8 +113,9 @@ def grid_states(study: optuna.Study, campaign: Campaign) -> dict[tuple[str, str,
 
 
 def _interrupted(trial: FrozenTrial, database: bool = False) -> bool:
-    """A failed trial that was stopped or lost its worker, or one that kept no reason: on a journal, a stop that
-    reached it as it marked itself (or a trial of an older version); on a database, Optuna's heartbeat failed it."""
+    """A failed trial that was stopped or lost its worker; on a journal also one that kept no reason (a stop that
+    reached it as it marked itself, or a trial of an older version). On a database such a trial is one that Optuna's
+    heartbeat failed, and Optuna's callback retries it."""
     return trial.state == TrialState.FAIL and bool(trial.user_attrs.get("interrupted") or not (database or raised(trial)))
 
 
