@@ -1,6 +1,7 @@
 """The authors' protocol (sb3_pevfa.protocols.authors_protocol): each mechanic against their code's arithmetic."""
 
 import copy
+import inspect
 
 import gymnasium as gym
 import numpy as np
@@ -19,7 +20,8 @@ TINY = dict(n_steps=200, batch_size=32, history_learning_starts=100, history_buf
 
 
 class Episodes(gym.Env):
-    """Episodes of the given lengths in turn (terminated), reward 1 a step, a one-dimensional state and action."""
+    """Episodes of the given lengths in turn (terminated), reward 1 a step, a one-dimensional state and action; the
+    first state is 0.5, where a critic with zero biases reads a value other than 0."""
 
     observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
     action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
@@ -30,7 +32,7 @@ class Episodes(gym.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         self.episode, self.t = self.episode + 1, 0
-        return np.array([0.0], np.float32), {}
+        return np.array([0.5], np.float32), {}
 
     def step(self, action):
         self.t += 1
@@ -102,9 +104,10 @@ def test_historical_updates_are_counted_per_episode_as_the_authors_count_them():
 def test_the_model_runs_that_many_historical_updates_each_iteration():
     # the first iteration (139 steps) ends before the updates start: their memory would still be empty
     model = _model((30, 17, 45), history_learning_starts=150)
-    steps, episodes, calls = [], [], []
-    step = model._critic_step
+    steps, episodes, calls, samples = [], [], [], []
+    step, sample = model._critic_step, model.history.sample
     model._critic_step = lambda loss, what: calls.append(what) or step(loss, what)  # type: ignore[method-assign]
+    model.history.sample = lambda *a, **k: samples.append((a, k)) or sample(*a, **k)  # type: ignore[method-assign]
     for _ in range(4):
         calls.clear()
         _rollout(model)
@@ -115,6 +118,19 @@ def test_the_model_runs_that_many_historical_updates_each_iteration():
         expected = sum(_authors_updates(episodes, 10, 150)[len(episodes) - len(lengths) :])
         assert calls.count("historical value loss") == expected
     assert sum(_authors_updates(episodes, 10, 150)) > 0
+    # each: 64 samples drawn uniformly from the memory, the current policy's left out (its own fit comes first)
+    assert len(samples) == sum(_authors_updates(episodes, 10, 150))
+    assert all(a == (64,) and k == {"exclude_policy": model.history.latest_policy_id} for a, k in samples[-3:])
+
+
+def test_the_historical_schedule_and_memory_are_the_authors():
+    arguments = authors_protocol("ppo_pevfa")
+    assert arguments["history_learning_starts"] == 5_000 and arguments["history_train_freq"] == 10
+    assert arguments["history_batch_size"] == 64 and arguments["history_batch_policies"] is None  # uniform samples
+    max_policies = inspect.signature(PPOPeVFA).parameters["history_max_policies"].default
+    assert arguments["history_buffer_size"] == 200_000 and arguments.get("history_max_policies", max_policies) == 10_000
+    assert arguments["rollout_encoder_gradient"] is True and arguments["representation"] == "opr"
+    assert authors_protocol("ppo")["history_train_freq"] == 0
 
 
 def test_monte_carlo_targets_and_gae_end_at_every_episode_end_and_at_the_cap():
@@ -122,6 +138,8 @@ def test_monte_carlo_targets_and_gae_end_at_every_episode_end_and_at_the_cap():
     model = _model((40,), algorithm="ppo", max_episode_steps=25, gamma=0.9, gae_lambda=0.8)
     _rollout(model)
     buffer, gamma = model.rollout_buffer, 0.9
+    # the state after the rollout's last step has a value: a bootstrap from it would show in every number below
+    assert abs(model.policy.predict_values(model.policy.obs_to_tensor(model._last_obs)[0]).item()) > 0.1
     assert buffer.buffer_size == 125 and np.all(buffer.rewards == 1.0)  # no bootstrap added to the rewards
     mc = np.array([(1 - gamma ** (25 - t)) / (1 - gamma) for t in range(25)] * 5, np.float32)
     np.testing.assert_allclose(buffer.returns[:, 0], mc, rtol=1e-5)
@@ -194,11 +212,16 @@ def test_weights_are_normal_with_variance_one_over_fan_in_and_biases_zero():
     model = _model(policy_kwargs=dict(net_arch=dict(pi=[400, 400], vf=[400])))
     linears = [m for m in model.policy.modules() if isinstance(m, nn.Linear)]
     assert len(linears) > 8  # actor, critic streams and head, the OPR encoder's row MLPs
+    standardized = []
     for layer in linears:
         assert th.all(layer.bias == 0)
-        if layer.weight.numel() >= 10_000:
-            std = layer.weight.std().item() * layer.in_features**0.5
-            assert 0.97 < std < 1.03 and abs(layer.weight.mean().item()) < 0.01 / layer.in_features**0.5 * 10
+        z = layer.weight.detach().flatten() * layer.in_features**0.5  # N(0, 1) if the weights are N(0, 1 / fan_in)
+        n = z.numel()
+        assert abs(z.std().item() - 1) < 4 / (2 * n) ** 0.5 and abs(z.mean().item()) < 4 / n**0.5, layer
+        standardized.append(z)
+    z = th.cat(standardized)
+    kurtosis = ((z - z.mean()) ** 4).mean() / z.var(unbiased=False) ** 2
+    assert abs(kurtosis.item() - 3) < 0.1  # a normal's (a uniform of the same variance: 1.8)
     assert th.all(model.policy.log_std == -0.5)
 
 

@@ -818,6 +818,36 @@ def test_a_stopped_worker_ignores_a_second_signal_while_it_marks_its_trial():
         signal.signal(signal.SIGTERM, saved[1])
 
 
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_run_stops_its_worker_which_marks_its_trial_stopped(tmp_path, stop):
+    """Ctrl-C pressed twice (SIGINT to the terminal's process group), or ``kill -TERM`` of the processes twice: the
+    worker marks its trial, exits with ``STOPPED``, and ``run`` says the same command goes on."""
+    journal = tmp_path / "stop.journal"
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "run", "--campaign", "stop", "--storage",
+               str(journal), "--workers", "1", *_definition("ppo", timesteps=8000)]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline, running = time.monotonic() + 300, None
+    while running is None and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.5)
+        if journal.exists():
+            trials = _study("stop", journal).get_trials()
+            running = next((t for t in trials if t.state == TrialState.RUNNING and "progress" in t.user_attrs), None)
+    for _ in range(2):
+        os.killpg(process.pid, stop)
+        time.sleep(0.2)
+    try:
+        stdout, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert running is not None, "no trial reached its first evaluation"
+    assert process.returncode == 1 and "stop: stopped; the same run command goes on" in stderr, stderr[-2000:]
+    assert "Traceback" not in stderr
+    assert ("stopping: the workers mark their trials" in stdout) == (stop == signal.SIGINT)  # SIGTERM: no wait
+    trial = _study("stop", journal).trials[running.number]
+    assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
+
+
 def test_a_stopped_worker_exits_quietly_and_a_failed_grid_point_is_named(tmp_path, monkeypatch):
     def stopped(*args):
         raise KeyboardInterrupt

@@ -343,14 +343,26 @@ def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_
         (dict(representation="rpr"), r"valid choices: \('opr', 'spr', 'fingerprint', 'random', 'none'\)"),
         (dict(representation="spr", n_state_action_pairs=0), "spr' needs n_state_action_pairs > 0"),
         (dict(snapshot_freq=0), "snapshot_freq must be an int >= 1"),
+        (dict(snapshot_freq=10.0), r"snapshot_freq must be an int >= 1, got 10.0"),
+        (dict(history_max_policies=0), "history_max_policies must be an int >= 1"),
+        (dict(history_train_freq=-1), "history_train_freq must be an int >= 0"),
+        (dict(history_batch_size=0), "history_batch_size must be an int >= 1"),
+        (dict(history_batch_policies=0), "history_batch_policies must be an int >= 1"),
+        (dict(history_learning_starts=-1), "history_learning_starts must be an int >= 0"),
+        (dict(history_learning_starts=True), "history_learning_starts must be an int >= 0, got True"),
+        (dict(live_encoder_gradient=1), "live_encoder_gradient must be a bool, got 1"),
+        (dict(flush_denormal="no"), "flush_denormal must be a bool, got 'no'"),
         (dict(history_batch_size=30, history_batch_policies=8), "must be a multiple of history_batch_policies"),
         (dict(use_sde=True), "use_sde=True is not supported"),
         (dict(policy_kwargs=dict(representation="opr")), r"Pass \['representation'\] as arguments of the algorithm"),
     ],
 )
-def test_bad_arguments_are_refused_at_construction(kwargs, message):
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message):
+    if "use_sde" in kwargs and pevfa_class is TD3PeVFA:
+        pytest.skip("TD3 has no gSDE option")
     with pytest.raises(ValueError, match=message):
-        SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs)
+        pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs)
 
 
 @pytest.mark.parametrize(("pevfa_class", "base"), [(SACPeVFA, "SAC"), (TD3PeVFA, "TD3")])
@@ -517,12 +529,15 @@ def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment
 def test_the_documented_resume_equals_one_uninterrupted_learn(tmp_path, pevfa_class):
     """docs/off-policy.md's resume: loaded onto the same env without a reset (``force_reset=False``), with the RNG
     states, the replay buffer and the snapshots, learning goes on as one ``learn`` call would have."""
-    kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4, **tiny())
+    kwargs = dict(snapshot_freq=20, history_train_freq=3, history_batch_size=32, history_batch_policies=4, **tiny())
     reference = pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs).learn(300)
     model = pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs).learn(200)
+    credit = model._history_credit  # gradient steps towards the next snapshots' update: 100 % 3
+    assert credit == 1
     model.save(tmp_path / "model")
     model.save_replay_buffer(tmp_path / "buffer")
     model = pevfa_class.load(tmp_path / "model", env=model.get_env(), force_reset=False, restore_rng_state=True)
+    assert model._history_credit == credit
     model.load_replay_buffer(tmp_path / "buffer")
     model.learn(100, reset_num_timesteps=False)
     assert model.history.policy_ids == reference.history.policy_ids

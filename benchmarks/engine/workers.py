@@ -242,6 +242,8 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
                 time.sleep(10)
                 bar.update(complete() - bar.n)
     except KeyboardInterrupt:  # Ctrl-C reached the workers too: they mark their trials and exit; else stop them
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C cannot cut the wait short
+        print(f"stopping: the workers mark their trials (at most {STOP_GRACE:.0f} s)", flush=True)
         deadline = time.monotonic() + STOP_GRACE
         while time.monotonic() < deadline and any(process.poll() is None for process in processes):
             time.sleep(0.5)
