@@ -467,3 +467,27 @@ def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refus
     if cls is PPOPeVFA:  # its own argument too
         with pytest.raises(ValueError, match="actor_batch_size must be None, an int > 1 or 'full', got 0"):
             cls.load(tmp_path / "mine", actor_batch_size=0)
+    with pytest.raises(TypeError, match=r"\(SB3's own: a file saved by SB3's algorithm loads with that algorithm's class"):
+        cls.load(tmp_path / sb3.__name__)
+
+
+@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "a2c_pevfa", "sac_pevfa", "td3_pevfa"])
+def test_a_misspelt_argument_and_a_missing_env_are_named(tmp_path, algorithm):
+    """SB3's load sets any keyword argument on the model, and its learn asserts an env without a message: here a
+    misspelt argument of load or of the constructor is a TypeError that suggests the name meant, and learn without an
+    env says how to give one."""
+    from sb3_pevfa import A2CPeVFA, SACPeVFA, TD3PeVFA
+
+    cls = {"ppo_pevfa": PPOPeVFA, "a2c_pevfa": A2CPeVFA, "sac_pevfa": SACPeVFA, "td3_pevfa": TD3PeVFA}[algorithm]
+    with pytest.raises(TypeError, match=rf"{cls.__name__}.* got an unexpected keyword argument 'learning_rat'"):
+        cls("MlpPolicy", "Pendulum-v1", learning_rat=0.1)
+    model = cls("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=1), policy_kwargs=dict(net_arch=[16]))
+    model.save(tmp_path / "model")
+    typo = "history_train_frq"
+    with pytest.raises(TypeError, match=rf"{cls.__name__}.load\(\) got .* '{typo}'; did you mean 'history_train_freq'"):
+        cls.load(tmp_path / "model", **{typo: 2})
+    loaded = cls.load(tmp_path / "model", history_train_freq=2, seed=3, device="cpu", force_reset=False)
+    assert loaded.history_train_freq == 2 and loaded.seed == 3  # the constructor's arguments, SB3's load's
+    with pytest.raises(ValueError, match=rf"{cls.__name__} has no env to learn on .* pass env= to load\(\)"):
+        loaded.learn(10)
+    assert ("samples=" in repr(loaded.history)) == (cls in (PPOPeVFA, A2CPeVFA))  # off-policy: records only

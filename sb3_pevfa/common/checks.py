@@ -1,7 +1,8 @@
 """Argument checks with messages that name the valid choices."""
 
+import difflib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 
@@ -16,11 +17,34 @@ def check_keyword_arguments(target: Callable[..., Any], kwargs: dict[str, Any], 
         raise ValueError(f"Unknown {what} {unknown}, valid choices: {valid}")
 
 
+def check_argument_names(given: Iterable[str], valid: Iterable[str], where: str) -> None:
+    """A TypeError naming the first of ``given`` that is not in ``valid`` and the valid names closest to it, as Python
+    names an unexpected keyword argument (``where``: ``"SACPeVFA()"``, ``"SACPeVFA.load()"``)."""
+    valid = sorted(set(valid))
+    for name in given:
+        if name not in valid:
+            close = difflib.get_close_matches(name, valid, n=3)
+            hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else f"; valid: {valid}"
+            raise TypeError(f"{where} got an unexpected keyword argument {name!r}{hint}")
+
+
+def init_parameters(cls: type) -> set[str]:
+    """The keyword parameters of the ``__init__`` of ``cls`` and of each base class that defines one."""
+    names = set()
+    for klass in cls.__mro__:
+        if "__init__" in vars(klass) and klass is not object:
+            parameters = inspect.signature(klass.__init__).parameters.values()  # type: ignore[misc]
+            names |= {p.name for p in parameters if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)} - {"self"}
+    return names
+
+
 def check_policy_class(model: Any, base: type) -> None:
     """A TypeError unless the model's policy class is ``base`` or a subclass (not SB3's own policy, nor another
     algorithm's, as a file of another algorithm brings), naming the aliases the model takes."""
     if not (isinstance(model.policy_class, type) and issubclass(model.policy_class, base)):
+        sb3 = getattr(model.policy_class, "__module__", "").startswith("stable_baselines3")
         raise TypeError(
             f"{type(model).__name__} needs its PeVFA policy (one of {sorted(model.policy_aliases)} or a subclass of "
             f"{base.__name__}), got {model.policy_class}"
+            + (" (SB3's own: a file saved by SB3's algorithm loads with that algorithm's class)" if sb3 else "")
         )

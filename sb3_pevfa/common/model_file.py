@@ -1,14 +1,19 @@
 """What a PeVFA model's file holds beyond SB3's, and how it loads: the global torch / numpy RNG states, so that a
 resumed run can go on bit for bit; the ``policy_kwargs`` a loader gives, completed with those the class adds itself."""
 
+import inspect
 import io
+import json
 import pathlib
 import zipfile
 from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
+
+from sb3_pevfa.common.checks import check_argument_names, init_parameters
 
 
 class ModelFile:
@@ -41,6 +46,11 @@ class ModelFile:
             saved run would have
         """
         custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
+        # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of the
+        # class or an attribute the file holds (a misspelt one would be set and never read)
+        load_parameters = init_parameters(cls) | set(cls._stored_data(path)) | {"restore_rng_state"}
+        check_argument_names(kwargs, load_parameters | set(inspect.signature(BaseAlgorithm.load).parameters),
+                             f"{cls.__name__}.load()")  # fmt: skip
         given = {name: kwargs[name] for name in cls.added_policy_kwargs if name in kwargs}
         if given and kwargs.get("policy_kwargs") is None:
             cls._check_policy_arguments(path, given, custom_objects)
@@ -54,6 +64,14 @@ class ModelFile:
             th.set_rng_state(rng_states["torch"])
             np.random.set_state(rng_states["numpy"])
         return model
+
+    def _require_env(self) -> None:
+        """A ValueError, before learning, where the model has no env (SB3 asserts it without a message)."""
+        if self.env is None:  # type: ignore[attr-defined]
+            raise ValueError(
+                f"{type(self).__name__} has no env to learn on (a model loaded with env=None): pass env= to load(), "
+                "or call model.set_env(env) before learn()"
+            )
 
     @classmethod
     def _check_policy_arguments(cls, path: Any, given: dict[str, Any], custom_objects: dict[str, Any] | None) -> None:
@@ -70,12 +88,25 @@ class ModelFile:
                 )
 
     @staticmethod
-    def _stored_policy_kwargs(path: Any, custom_objects: dict[str, Any] | None) -> dict[str, Any]:
-        """The ``policy_kwargs`` stored in the model file ``path``."""
+    def _data_text(path: Any) -> str:
+        """The JSON text of the attributes stored in the model file ``path``."""
         if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
             path = f"{path}.zip"  # as SB3 looks for it
         with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
-            return json_to_data(archive.read("data").decode(), custom_objects=custom_objects).get("policy_kwargs") or {}
+            return archive.read("data").decode()
+
+    @classmethod
+    def _stored_data(cls, path: Any) -> dict[str, Any]:
+        """The stored attributes' entries, undecoded; none where the file cannot be read (SB3's load says why)."""
+        try:
+            return json.loads(cls._data_text(path))
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+            return {}
+
+    @classmethod
+    def _stored_policy_kwargs(cls, path: Any, custom_objects: dict[str, Any] | None) -> dict[str, Any]:
+        """The ``policy_kwargs`` stored in the model file ``path``."""
+        return json_to_data(cls._data_text(path), custom_objects=custom_objects).get("policy_kwargs") or {}
 
     @classmethod
     def _completed_policy_kwargs(

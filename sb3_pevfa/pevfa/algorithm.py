@@ -520,6 +520,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         if self.env is None and self.env_id is not None:
             # Loaded with env=None from a model that was built from an env id: rebuild that env (seeded).
             self.set_env(make_vec_env(self.env_id, n_envs=self.n_envs, seed=self.seed))
+        self._require_env()
         kwargs = {} if log_interval is None else {"log_interval": log_interval}  # None: the base's (PPO 1, A2C 100)
         enable_history_checkpoints(callback)
         super().learn(

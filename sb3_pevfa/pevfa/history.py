@@ -615,10 +615,9 @@ class PolicyHistory:
         return self.n_samples
 
     def __repr__(self) -> str:
-        return (
-            f"PolicyHistory(policies={self.n_policies}/{self.max_policies}, samples={self.n_samples}/{self.buffer_size}, "
-            f"memory={self.nbytes / 2**20:.1f} MiB)"
-        )
+        # a history of records only (SACPeVFA's and TD3PeVFA's snapshots: the replay buffer holds the transitions)
+        samples = f"samples={self.n_samples}/{self.buffer_size}, " if self.buffer_size > 1 else ""
+        return f"PolicyHistory(policies={self.n_policies}/{self.max_policies}, {samples}memory={self.nbytes / 2**20:.1f} MiB)"
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | pathlib.Path | io.IOBase) -> None:

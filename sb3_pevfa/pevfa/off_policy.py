@@ -20,7 +20,7 @@ from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from sb3_pevfa.common.checks import check_policy_class
+from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
 from sb3_pevfa.common.model_file import ModelFile
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
@@ -121,6 +121,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
                 f"representation must be one of {OFF_POLICY_REPRESENTATIONS}, got {representation!r}: after the env come "
                 f"the PeVFA arguments; pass {base}'s own (learning_rate, ...) by keyword"
             )
+        check_argument_names(kwargs, init_parameters(type(self)), f"{type(self).__name__}()")  # not SB3's base's name
         arguments = dict(locals())
         policy_kwargs = off_policy_kwargs(policy_kwargs, arguments)
         super().__init__(policy, env, policy_kwargs=policy_kwargs, _init_setup_model=False, **kwargs)
@@ -170,6 +171,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         tb_log_name: str = "run",
         progress_bar: bool = False,
     ) -> tuple[int, Any]:
+        self._require_env()
         if reset_num_timesteps:  # SB3 counts the episodes anew
             self._snapshot_episodes = 0
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
