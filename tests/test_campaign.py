@@ -848,6 +848,16 @@ def test_a_stopped_run_stops_its_worker_which_marks_its_trial_stopped(tmp_path, 
     assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
 
 
+def test_status_read_through_head_ends_quietly(tmp_path):
+    seeds = [str(seed) for seed in range(1000)]  # more lines than a pipe holds
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "status", "--campaign", "piped", "--storage",
+               str(tmp_path / "p.journal"), *_definition("ppo", "opr-e2e", seeds=seeds)]  # fmt: skip
+    status = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert status.stdout.readline().startswith(b"piped: 0/2000 grid points complete")
+    status.stdout.close()  # as head does after its lines
+    assert status.wait(timeout=300) == 0 and status.stderr.read() == b""
+
+
 def test_a_stopped_worker_exits_quietly_and_a_failed_grid_point_is_named(tmp_path, monkeypatch):
     def stopped(*args):
         raise KeyboardInterrupt

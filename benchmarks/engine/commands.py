@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import pathlib
+import sys
 
 import optuna
 
@@ -85,7 +86,10 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     elif args.command == "work":
         work(args.campaign, args.storage, args.stale_after)
     else:
-        status(args.campaign, args.storage, args.workers)
+        try:
+            status(args.campaign, args.storage, args.workers)
+        except BrokenPipeError:  # read through head or less, which stopped reading: nothing is wrong
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit would raise again
 
 
 def opened(names: list[str], storage: str | None, given: Campaign | None = None) -> list[Campaign]:
