@@ -690,6 +690,11 @@ class PolicyHistory:
                     "; a history recorded as its rollouts saw a VecNormalize env loads into a model built or "
                     "loaded with history_normalization='rollout'"
                 )
+            elif "renormalize" in mismatches:  # the file's samples are raw, read through the model's VecNormalize
+                hint = (
+                    "; a history recorded under a VecNormalize env loads into a model on that VecNormalize (load the "
+                    "model with env=VecNormalize.load(statistics_path, venv))"
+                )
             raise ValueError(f"History file {path} does not match this model ({details}){hint}")
         try:
             loaded = self._from_arrays(meta, arrays, version)
