@@ -832,28 +832,49 @@ def test_a_stopped_run_stops_its_worker_which_marks_its_trial_stopped(tmp_path, 
         if journal.exists():
             trials = _study("stop", journal).get_trials()
             running = next((t for t in trials if t.state == TrialState.RUNNING and "progress" in t.user_attrs), None)
+    if running is None:
+        os.killpg(process.pid, signal.SIGKILL)
+        pytest.fail(f"no trial reached its first evaluation: {process.communicate()[1][-3000:]}")
     for _ in range(2):
         os.killpg(process.pid, stop)
         time.sleep(0.2)
     try:
-        stdout, stderr = process.communicate(timeout=120)
+        _, stderr = process.communicate(timeout=120)
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
-    assert running is not None, "no trial reached its first evaluation"
     assert process.returncode == 1 and "stop: stopped; the same run command goes on" in stderr, stderr[-2000:]
-    assert "Traceback" not in stderr
-    assert ("stopping: the workers mark their trials" in stdout) == (stop == signal.SIGINT)  # SIGTERM: no wait
+    assert "Traceback" not in stderr and "stopping: the workers mark their trials (at most 30 s)" in stderr
     trial = _study("stop", journal).trials[running.number]
     assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
 
 
-def test_status_read_through_head_ends_quietly(tmp_path):
-    seeds = [str(seed) for seed in range(1000)]  # more lines than a pipe holds
+def test_a_worker_that_does_not_stop_within_the_grace_is_killed(monkeypatch):
+    code = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print(flush=True); time.sleep(60)"
+    stuck = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    quits = subprocess.Popen([sys.executable, "-c", "import time; print(flush=True); time.sleep(60)"], stdout=subprocess.PIPE)
+    for process in (stuck, quits):
+        process.stdout.readline()  # its handler is set
+    monkeypatch.setattr(workers, "STOP_GRACE", 2.0)
+    saved = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        start = time.monotonic()
+        workers.stop_workers([stuck, quits])
+        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, saved[0])
+        signal.signal(signal.SIGTERM, saved[1])
+    assert quits.wait(1) == -signal.SIGTERM and stuck.wait(1) == -signal.SIGKILL and 2.0 <= time.monotonic() - start < 5
+
+
+@pytest.mark.parametrize("n_seeds", [80, 1000])  # its output within a buffer's flush at exit (8 KiB), and beyond a pipe's
+def test_status_read_through_head_ends_quietly(tmp_path, n_seeds):
+    seeds = [str(seed) for seed in range(n_seeds)]
     command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "status", "--campaign", "piped", "--storage",
                str(tmp_path / "p.journal"), *_definition("ppo", "opr-e2e", seeds=seeds)]  # fmt: skip
-    status = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    assert status.stdout.readline().startswith(b"piped: 0/2000 grid points complete")
+    env = {name: value for name, value in os.environ.items() if name != "PYTHONUNBUFFERED"}  # stdout buffered
+    status = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    assert status.stdout.readline().startswith(f"piped: 0/{2 * n_seeds} grid points complete".encode())
     status.stdout.close()  # as head does after its lines
     assert status.wait(timeout=300) == 0 and status.stderr.read() == b""
 

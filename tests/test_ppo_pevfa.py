@@ -296,7 +296,8 @@ def test_a_history_under_a_loaded_vec_normalize(tmp_path):
     assert loaded.history.n_policies == model.history.n_policies + 1
     # raw observations do not go to a model without VecNormalize, nor to its env
     plain = PPOPeVFA.load(tmp_path / "model", env=make_vec_env("Pendulum-v1", n_envs=2))
-    with pytest.raises(ValueError, match=r"renormalize: file has True.*on that VecNormalize \(load the model with env="):
+    hint = r"renormalize: file has True.*with env=VecNormalize.* and history_normalization='current'"
+    with pytest.raises(ValueError, match=hint):
         plain.load_history(tmp_path / "history")
     with pytest.raises(ValueError, match="recorded with a VecNormalize"):
         loaded.set_env(make_vec_env("Pendulum-v1", n_envs=2))

@@ -467,7 +467,7 @@ def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refus
     if cls is PPOPeVFA:  # its own argument too
         with pytest.raises(ValueError, match="actor_batch_size must be None, an int > 1 or 'full', got 0"):
             cls.load(tmp_path / "mine", actor_batch_size=0)
-    with pytest.raises(TypeError, match=r"\(SB3's own: a file saved by SB3's algorithm loads with that algorithm's class"):
+    with pytest.raises(TypeError, match=r"\(SB3's own policy; a file saved by SB3's algorithm loads with that algorithm"):
         cls.load(tmp_path / sb3.__name__)
 
 

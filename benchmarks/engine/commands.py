@@ -88,6 +88,7 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     else:
         try:
             status(args.campaign, args.storage, args.workers)
+            sys.stdout.flush()  # here, not at exit: the last block may find the pipe closed too
         except BrokenPipeError:  # read through head or less, which stopped reading: nothing is wrong
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit would raise again
 

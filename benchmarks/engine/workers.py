@@ -3,6 +3,7 @@ after campaign, then waits while others run the last grid points and takes over 
 recovers the trials of dead workers, starts the worker processes (``benchmarks/campaign.py work``) and shows the
 progress."""
 
+import contextlib
 import importlib
 import logging
 import os
@@ -226,8 +227,7 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
     processes = [subprocess.Popen(command) for _ in range(workers)]
 
     def stop(*_: Any) -> None:
-        for process in processes:
-            process.send_signal(signal.SIGTERM)
+        raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, stop)
     from tqdm import tqdm
@@ -241,13 +241,8 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
             while any(process.poll() is None for process in processes):
                 time.sleep(10)
                 bar.update(complete() - bar.n)
-    except KeyboardInterrupt:  # Ctrl-C reached the workers too: they mark their trials and exit; else stop them
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C cannot cut the wait short
-        print(f"stopping: the workers mark their trials (at most {STOP_GRACE:.0f} s)", flush=True)
-        deadline = time.monotonic() + STOP_GRACE
-        while time.monotonic() < deadline and any(process.poll() is None for process in processes):
-            time.sleep(0.5)
-        stop()
+    except KeyboardInterrupt:  # Ctrl-C (it reached the workers too) or SIGTERM
+        stop_workers(processes)
     codes = [process.wait() for process in processes]
     if codes and all(code == STOPPED for code in codes):
         raise SystemExit(f"{' '.join(names)}: stopped; the same run command goes on (a stopped trial from its checkpoint)")
@@ -257,6 +252,24 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
                   if failed(study, campaign)]  # fmt: skip
     if unfinished:
         raise SystemExit("\n".join(unfinished))
+
+
+def stop_workers(processes: list[subprocess.Popen]) -> None:
+    """The workers told to stop (SIGTERM; one already stopping ignores it) and given ``STOP_GRACE`` seconds to mark
+    their trials and exit; one still running then is killed (the next ``run`` recovers its trial, its worker gone)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C or kill cannot cut the wait short
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    with contextlib.suppress(OSError):  # stderr may have gone with the terminal or the pipe
+        print(f"stopping: the workers mark their trials (at most {STOP_GRACE:.0f} s)", file=sys.stderr, flush=True)
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + STOP_GRACE
+    while time.monotonic() < deadline and any(process.poll() is None for process in processes):
+        time.sleep(0.5)
+    for process in processes:
+        if process.poll() is None:
+            process.kill()
 
 
 def failed(study: optuna.Study, campaign: Campaign) -> int:

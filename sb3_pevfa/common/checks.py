@@ -18,23 +18,28 @@ def check_keyword_arguments(target: Callable[..., Any], kwargs: dict[str, Any], 
 
 
 def check_argument_names(given: Iterable[str], valid: Iterable[str], where: str) -> None:
-    """A TypeError naming the first of ``given`` that is not in ``valid`` and the valid names closest to it, as Python
-    names an unexpected keyword argument (``where``: ``"SACPeVFA()"``, ``"SACPeVFA.load()"``)."""
-    valid = sorted(set(valid))
+    """A TypeError naming the first of ``given`` that is not in ``valid`` and the public valid names closest to it,
+    as Python names an unexpected keyword argument (``where``: ``"SACPeVFA()"``, ``"SACPeVFA.load()"``)."""
+    valid = set(valid)
+    public = sorted(name for name in valid if not name.startswith("_"))
     for name in given:
         if name not in valid:
-            close = difflib.get_close_matches(name, valid, n=3)
-            hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else f"; valid: {valid}"
+            close = difflib.get_close_matches(name, public, n=3)
+            hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else f"; valid: {public}"
             raise TypeError(f"{where} got an unexpected keyword argument {name!r}{hint}")
 
 
 def init_parameters(cls: type) -> set[str]:
-    """The keyword parameters of the ``__init__`` of ``cls`` and of each base class that defines one."""
-    names = set()
+    """The keyword parameters ``cls(...)`` takes: those of its ``__init__`` and, through ``**kwargs``, of each base
+    class's ``__init__`` up to the first without ``**kwargs``."""
+    names: set[str] = set()
     for klass in cls.__mro__:
-        if "__init__" in vars(klass) and klass is not object:
-            parameters = inspect.signature(klass.__init__).parameters.values()  # type: ignore[misc]
-            names |= {p.name for p in parameters if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)} - {"self"}
+        if "__init__" not in vars(klass) or klass is object:
+            continue
+        parameters = inspect.signature(klass.__init__).parameters.values()  # type: ignore[misc]
+        names |= {p.name for p in parameters if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)} - {"self"}
+        if not any(p.kind == p.VAR_KEYWORD for p in parameters):
+            break
     return names
 
 
@@ -46,5 +51,5 @@ def check_policy_class(model: Any, base: type) -> None:
         raise TypeError(
             f"{type(model).__name__} needs its PeVFA policy (one of {sorted(model.policy_aliases)} or a subclass of "
             f"{base.__name__}), got {model.policy_class}"
-            + (" (SB3's own: a file saved by SB3's algorithm loads with that algorithm's class)" if sb3 else "")
+            + (" (SB3's own policy; a file saved by SB3's algorithm loads with that algorithm's class)" if sb3 else "")
         )

@@ -15,6 +15,9 @@ from stable_baselines3.common.save_util import json_to_data
 
 from sb3_pevfa.common.checks import check_argument_names, init_parameters
 
+#: The keyword arguments of SB3's ``load`` (``env``, ``device``, ``custom_objects``, ...)
+SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
+
 
 class ModelFile:
     """Mixin of an SB3 algorithm (listed before its SB3 base): ``save`` stores the global torch and numpy RNG states
@@ -46,16 +49,19 @@ class ModelFile:
             saved run would have
         """
         custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
-        # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of the
-        # class or an attribute the file holds (a misspelt one would be set and never read)
-        load_parameters = init_parameters(cls) | set(cls._stored_data(path)) | {"restore_rng_state"}
-        check_argument_names(kwargs, load_parameters | set(inspect.signature(BaseAlgorithm.load).parameters),
-                             f"{cls.__name__}.load()")  # fmt: skip
-        given = {name: kwargs[name] for name in cls.added_policy_kwargs if name in kwargs}
-        if given and kwargs.get("policy_kwargs") is None:
-            cls._check_policy_arguments(path, given, custom_objects)
-        if kwargs.get("policy_kwargs") is not None:
-            kwargs["policy_kwargs"] = cls._completed_policy_kwargs(path, kwargs["policy_kwargs"], kwargs, custom_objects)
+        text = cls._data_text(path)
+        if text is not None:  # else SB3's load says why the file cannot be read
+            # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of
+            # the class or an attribute the file holds (a misspelt one would be set and never read)
+            check_argument_names(kwargs, init_parameters(cls) | set(json.loads(text)) | SB3_LOAD_PARAMETERS,
+                                 f"{cls.__name__}.load()")  # fmt: skip
+            given = {name: kwargs[name] for name in cls.added_policy_kwargs if name in kwargs}
+            if given or kwargs.get("policy_kwargs") is not None:
+                stored = json_to_data(text, custom_objects=custom_objects).get("policy_kwargs") or {}
+                if kwargs.get("policy_kwargs") is None:
+                    cls._check_policy_arguments(given, stored)
+                else:
+                    kwargs["policy_kwargs"] = cls._completed_policy_kwargs(stored, kwargs["policy_kwargs"], kwargs)
         model = super().load(path, *args, **kwargs)  # type: ignore[misc]
         rng_states = model.__dict__.pop("_rng_states", None)
         if restore_rng_state:
@@ -73,12 +79,11 @@ class ModelFile:
                 "or call model.set_env(env) before learn()"
             )
 
-    @classmethod
-    def _check_policy_arguments(cls, path: Any, given: dict[str, Any], custom_objects: dict[str, Any] | None) -> None:
+    @staticmethod
+    def _check_policy_arguments(given: dict[str, Any], stored: dict[str, Any]) -> None:
         """A ValueError where a policy argument given to ``load`` (``representation``, ...; rl-zoo3's ``-i`` passes its
-        entry's) differs from the file's: the model keeps the policy it was saved with, so the argument would be kept
-        unread. Files without them (SB3's own) are left to the class's check of its policy."""
-        stored = cls._stored_policy_kwargs(path, custom_objects)
+        entry's) differs from the file's (``stored``): the model keeps the policy it was saved with, so the argument
+        would be kept unread. Files without them (SB3's own) are left to the class's check of its policy."""
         for name, value in given.items():
             if name in stored and value != stored[name]:
                 raise ValueError(
@@ -88,31 +93,22 @@ class ModelFile:
                 )
 
     @staticmethod
-    def _data_text(path: Any) -> str:
-        """The JSON text of the attributes stored in the model file ``path``."""
+    def _data_text(path: Any) -> str | None:
+        """The JSON text of the attributes stored in the model file ``path``; None where it cannot be read."""
         if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
             path = f"{path}.zip"  # as SB3 looks for it
-        with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
-            return archive.read("data").decode()
-
-    @classmethod
-    def _stored_data(cls, path: Any) -> dict[str, Any]:
-        """The stored attributes' entries, undecoded; none where the file cannot be read (SB3's load says why)."""
         try:
-            return json.loads(cls._data_text(path))
+            with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
+                text = archive.read("data").decode()
+            json.loads(text)
         except (OSError, KeyError, ValueError, zipfile.BadZipFile):
-            return {}
+            return None
+        return text
 
     @classmethod
-    def _stored_policy_kwargs(cls, path: Any, custom_objects: dict[str, Any] | None) -> dict[str, Any]:
-        """The ``policy_kwargs`` stored in the model file ``path``."""
-        return json_to_data(cls._data_text(path), custom_objects=custom_objects).get("policy_kwargs") or {}
-
-    @classmethod
-    def _completed_policy_kwargs(
-        cls, path: Any, given: dict[str, Any], kwargs: dict[str, Any], custom_objects: dict[str, Any] | None
-    ) -> dict[str, Any]:
-        stored = cls._stored_policy_kwargs(path, custom_objects)
+    def _completed_policy_kwargs(cls, stored: dict[str, Any], given: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+        """``given`` completed as the constructor completes ``policy_kwargs``, from ``load``'s keyword arguments, else
+        from the file's ``stored`` entries."""
         added = {
             name: kwargs.get(name, stored.get(name)) for name in cls.added_policy_kwargs if name in kwargs or name in stored
         }

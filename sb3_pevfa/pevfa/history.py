@@ -693,7 +693,7 @@ class PolicyHistory:
             elif "renormalize" in mismatches:  # the file's samples are raw, read through the model's VecNormalize
                 hint = (
                     "; a history recorded under a VecNormalize env loads into a model on that VecNormalize (load the "
-                    "model with env=VecNormalize.load(statistics_path, venv))"
+                    "model with env=VecNormalize.load(statistics_path, venv)) and history_normalization='current'"
                 )
             raise ValueError(f"History file {path} does not match this model ({details}){hint}")
         try:
