@@ -19,6 +19,11 @@ from sb3_pevfa.common.checks import check_argument_names, init_parameters
 SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
 
 
+def sb3_algorithm(cls: type) -> str:
+    """The name of the SB3 algorithm class ``cls`` is based on (``"PPO"``, ``"A2C"``, ``"SAC"``, ``"TD3"``)."""
+    return next(klass.__name__ for klass in cls.__mro__ if klass.__module__.startswith("stable_baselines3"))
+
+
 class ModelFile:
     """Mixin of an SB3 algorithm (listed before its SB3 base): ``save`` stores the global torch and numpy RNG states
     with the model, ``load(..., restore_rng_state=True)`` sets them back; ``load(..., policy_kwargs=...)`` takes the
@@ -32,10 +37,11 @@ class ModelFile:
 
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
         self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
+        self._sb3_algorithm = sb3_algorithm(type(self))
         try:
             super().save(path, exclude=exclude, include=include)  # type: ignore[misc]
         finally:
-            del self._rng_states
+            del self._rng_states, self._sb3_algorithm
 
     @classmethod
     def load(cls, path: str | pathlib.Path | io.BufferedIOBase, *args: Any, restore_rng_state: bool = False, **kwargs: Any):
@@ -53,8 +59,14 @@ class ModelFile:
         if text is not None:  # else SB3's load says why the file cannot be read
             # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of
             # the class or an attribute the file holds (a misspelt one would be set and never read)
-            check_argument_names(kwargs, init_parameters(cls) | set(json.loads(text)) | SB3_LOAD_PARAMETERS,
-                                 f"{cls.__name__}.load()")  # fmt: skip
+            data = json.loads(text)
+            check_argument_names(kwargs, init_parameters(cls) | set(data) | SB3_LOAD_PARAMETERS, f"{cls.__name__}.load()")
+            saved_by = data.get("_sb3_algorithm", sb3_algorithm(cls))  # files of earlier versions: not stored
+            if saved_by != sb3_algorithm(cls):  # PPOPeVFA's and A2CPeVFA's share their policy class
+                raise TypeError(
+                    f"{path} holds a model of an algorithm based on SB3's {saved_by}; {cls.__name__} is based on "
+                    f"{sb3_algorithm(cls)}: load it with that algorithm's class"
+                )
             given = {name: kwargs[name] for name in cls.added_policy_kwargs if name in kwargs}
             if given or kwargs.get("policy_kwargs") is not None:
                 stored = json_to_data(text, custom_objects=custom_objects).get("policy_kwargs") or {}
@@ -64,6 +76,7 @@ class ModelFile:
                     kwargs["policy_kwargs"] = cls._completed_policy_kwargs(stored, kwargs["policy_kwargs"], kwargs)
         model = super().load(path, *args, **kwargs)  # type: ignore[misc]
         rng_states = model.__dict__.pop("_rng_states", None)
+        model.__dict__.pop("_sb3_algorithm", None)
         if restore_rng_state:
             if rng_states is None:
                 raise ValueError(f"{path} holds no RNG states (saved by another version): load without restore_rng_state")
