@@ -105,11 +105,20 @@ def error_text(error: BaseException) -> str:
     return f"{text[:head]} … {text[-(ERROR_LENGTH - head - 3) :]}"
 
 
+def _ignore(*_: Any) -> None:
+    """A handler that ignores its signal. Unlike ``SIG_IGN`` it also takes one already delivered and not yet handled
+    (Ctrl-C and ``run``'s SIGTERM at once), where Python would print "Signal 15 ignored due to race condition"."""
+
+
+def _ignore_stops() -> None:
+    signal.signal(signal.SIGINT, _ignore)
+    signal.signal(signal.SIGTERM, _ignore)
+
+
 def _stop(*_: Any) -> None:
     """SIGINT, SIGTERM: the trial is marked interrupted (and enqueued again by the next ``run``); a second signal while
     it stops is ignored, so that it cannot cut the marking short."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _ignore_stops()
     raise KeyboardInterrupt
 
 
@@ -257,8 +266,7 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
 def stop_workers(processes: list[subprocess.Popen]) -> None:
     """The workers told to stop (SIGTERM; one already stopping ignores it) and given ``STOP_GRACE`` seconds to mark
     their trials and exit; one still running then is killed (the next ``run`` recovers its trial, its worker gone)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C or kill cannot cut the wait short
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _ignore_stops()  # a second Ctrl-C or kill cannot cut the wait short
     with contextlib.suppress(OSError):  # stderr may have gone with the terminal or the pipe
         print(f"stopping: the workers mark their trials (at most {STOP_GRACE:.0f} s)", file=sys.stderr, flush=True)
     for process in processes:
