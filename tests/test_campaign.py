@@ -863,7 +863,7 @@ def test_a_worker_that_does_not_stop_within_the_grace_is_killed(monkeypatch):
     try:
         start = time.monotonic()
         workers.stop_workers([stuck, quits])
-        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == workers._ignore
+        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN  # run exits next
     finally:
         signal.signal(signal.SIGINT, saved[0])
         signal.signal(signal.SIGTERM, saved[1])
@@ -887,8 +887,15 @@ def test_a_stopped_worker_exits_quietly_and_a_failed_grid_point_is_named(tmp_pat
         raise KeyboardInterrupt
 
     monkeypatch.setattr(workers, "work_on_all", stopped)
-    with pytest.raises(SystemExit) as exit_status:
-        workers.work(["mine"], None)
+    saved = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(SystemExit) as exit_status:
+            workers.work(["mine"], None)
+        # ignored by the OS from here: Python's exit puts the default action back where a Python handler is set
+        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, saved[0])
+        signal.signal(signal.SIGTERM, saved[1])
     assert exit_status.value.code == workers.STOPPED == 130
     record = logging.LogRecord("optuna", logging.WARNING, "", 0, "Trial 0 failed", None, (KeyboardInterrupt, None, None))
     assert workers._without_stop_traceback(record) and record.exc_info is None  # the warning stays, its stack goes

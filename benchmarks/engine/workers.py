@@ -110,9 +110,11 @@ def _ignore(*_: Any) -> None:
     (Ctrl-C and ``run``'s SIGTERM at once), where Python would print "Signal 15 ignored due to race condition"."""
 
 
-def _ignore_stops() -> None:
-    signal.signal(signal.SIGINT, _ignore)
-    signal.signal(signal.SIGTERM, _ignore)
+def _ignore_stops(exiting: bool = False) -> None:
+    """Further SIGINT and SIGTERM ignored; ``exiting``: by the OS (``SIG_IGN``), as Python's exit would put their
+    default action back where a Python handler is set, and a late signal would kill the process by it."""
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN if exiting else _ignore)
 
 
 def _stop(*_: Any) -> None:
@@ -128,6 +130,7 @@ def work(names: list[str], storage: str | None, stale_after: float = 1800.0) -> 
     try:
         work_on_all(names, storage, stale_after)
     except KeyboardInterrupt:
+        _ignore_stops(exiting=True)
         raise SystemExit(STOPPED) from None
 
 
@@ -278,6 +281,7 @@ def stop_workers(processes: list[subprocess.Popen]) -> None:
     for process in processes:
         if process.poll() is None:
             process.kill()
+    _ignore_stops(exiting=True)  # run exits next
 
 
 def failed(study: optuna.Study, campaign: Campaign) -> int:
