@@ -40,7 +40,7 @@ from .training import provenance, train
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
 #: The exit status of a worker stopped by SIGINT or SIGTERM (a shell's for SIGINT)
 STOPPED = 130
-#: Seconds ``run`` waits, after Ctrl-C, for its workers to stop on their own before it sends them SIGTERM
+#: Seconds ``run``, stopped, gives its workers to mark their trials and exit before it kills one still running
 STOP_GRACE = 30.0
 #: The characters of a training's exception kept in its trial
 ERROR_LENGTH = 300

@@ -55,11 +55,10 @@ class ModelFile:
             saved run would have
         """
         custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
-        text = cls._data_text(path)
+        text, data = cls._stored_data(path)
         if text is not None:  # else SB3's load says why the file cannot be read
             # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of
             # the class or an attribute the file holds (a misspelt one would be set and never read)
-            data = json.loads(text)
             check_argument_names(kwargs, init_parameters(cls) | set(data) | SB3_LOAD_PARAMETERS, f"{cls.__name__}.load()")
             saved_by = data.get("_sb3_algorithm", sb3_algorithm(cls))  # files of earlier versions: not stored
             if saved_by != sb3_algorithm(cls):  # PPOPeVFA's and A2CPeVFA's share their policy class
@@ -106,17 +105,17 @@ class ModelFile:
                 )
 
     @staticmethod
-    def _data_text(path: Any) -> str | None:
-        """The JSON text of the attributes stored in the model file ``path``; None where it cannot be read."""
+    def _stored_data(path: Any) -> tuple[str, dict[str, Any]] | tuple[None, None]:
+        """The JSON text of the attributes stored in the model file ``path`` and its entries, undecoded; ``None``
+        where the file cannot be read."""
         if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
             path = f"{path}.zip"  # as SB3 looks for it
         try:
             with zipfile.ZipFile(path) as archive:  # the stored data alone (a file object is left open)
                 text = archive.read("data").decode()
-            json.loads(text)
+            return text, json.loads(text)
         except (OSError, KeyError, ValueError, zipfile.BadZipFile):
-            return None
-        return text
+            return None, None
 
     @classmethod
     def _completed_policy_kwargs(cls, stored: dict[str, Any], given: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
