@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
+from scipy.stats import trim_mean
 from stable_baselines3.common.logger import HumanOutputFormat
 
 from sb3_pevfa import REPRESENTATIONS
@@ -244,6 +245,11 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     np.testing.assert_allclose(scores["b"], [1, 4])
     # pooled runs 1, 1, 2, 3, 4: the middle half (trimmed 25 % at each end: 1 run each) is 1, 2, 3
     assert aggregate.iqm(scores) == pytest.approx(2.0)
+    # scipy's trim_mean to the bit, for every size a report meets (1 to 40 runs, tasks of unequal seeds)
+    rng = np.random.default_rng(0)
+    for size in range(1, 41):
+        runs = {"a": rng.normal(size=size), "b": rng.lognormal(size=1 + size % 3)}
+        assert aggregate.iqm(runs) == float(trim_mean(np.concatenate([runs["a"], runs["b"]]), 0.25))
     assert aggregate.mean(scores) == pytest.approx((2.0 + 2.5) / 2)
     low, high = aggregate.stratified_bootstrap_ci(scores, aggregate.mean, reps=500)
     assert 1.0 < low < aggregate.mean(scores) < high < 3.5

@@ -870,6 +870,22 @@ def test_a_worker_that_does_not_stop_within_the_grace_is_killed(monkeypatch):
     assert quits.wait(1) == -signal.SIGTERM and stuck.wait(1) == -signal.SIGKILL and 2.0 <= time.monotonic() - start < 5
 
 
+def test_run_reads_progress_until_one_more_worker_exits_and_no_longer():
+    """``run`` ends as its last worker does, not at its next reading of the progress (every 10 s); a worker that has
+    already exited does not make it read the progress again and again."""
+
+    def exiting_after(seconds: float) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", f"import time; time.sleep({seconds})"])
+
+    done, later = exiting_after(0), exiting_after(3)
+    done.wait()
+    start = time.monotonic()
+    workers.wait_any([done, later], 0.5)  # the exited one does not end the wait
+    assert later.poll() is None and 0.5 <= time.monotonic() - start < 2
+    workers.wait_any([done, later], 60)  # the other one's exit does
+    assert later.poll() == 0 and time.monotonic() - start < 10
+
+
 @pytest.mark.parametrize("n_seeds", [80, 1000])  # its output within a buffer's flush at exit (8 KiB), and beyond a pipe's
 def test_status_read_through_head_ends_quietly(tmp_path, n_seeds):
     seeds = [str(seed) for seed in range(n_seeds)]

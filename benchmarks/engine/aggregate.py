@@ -25,8 +25,15 @@ def normalized(scores: TaskScores, baseline: TaskScores) -> TaskScores:
 
 
 def iqm(scores: TaskScores) -> float:
-    """Interquartile mean of all runs pooled over tasks."""
-    return float(trim_mean(np.concatenate(list(scores.values())), 0.25))
+    """Interquartile mean of all runs pooled over tasks: ``scipy.stats.trim_mean(runs, 0.25)``, computed as scipy
+    computes it (the same partition, so the same number to the bit) without its checks, which took 0.7 ms of each
+    bootstrap replicate."""
+    runs = np.concatenate(list(scores.values()))
+    low = int(0.25 * len(runs))
+    high = len(runs) - low
+    if low >= high:
+        return float(trim_mean(runs, 0.25))  # scipy's own answer (or error) for an empty middle
+    return float(np.mean(np.partition(runs, (low, high - 1))[low:high]))
 
 
 def mean(scores: TaskScores) -> float:

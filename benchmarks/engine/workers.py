@@ -42,6 +42,10 @@ SCRIPT = ROOT / "benchmarks" / "campaign.py"
 STOPPED = 130
 #: Seconds ``run``, stopped, gives its workers to mark their trials and exit before it kills one still running
 STOP_GRACE = 30.0
+#: Seconds between ``run``'s readings of the grids' progress
+PROGRESS_EVERY = 10.0
+#: Seconds at most between a worker's looks for a trial to take over while others run the last grid points
+WAIT_AT_MOST = 5.0
 #: The characters of a training's exception kept in its trial
 ERROR_LENGTH = 300
 
@@ -151,10 +155,10 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
     studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
     for name, study, campaign in studies:
         work_on(name, study, campaign)
-    delay = 1.0
+    delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
         time.sleep(delay)
-        delay = min(2 * delay, 60.0)
+        delay = min(2 * delay, WAIT_AT_MOST)
         for name, study, campaign in studies:
             recover(study, campaign, stale_after)
             work_on(name, study, campaign)
@@ -251,7 +255,7 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
     try:
         with tqdm(total=total, initial=complete(), desc=" ".join(names), unit="trial", disable=None) as bar:
             while any(process.poll() is None for process in processes):
-                time.sleep(10)
+                wait_any(processes, PROGRESS_EVERY)
                 bar.update(complete() - bar.n)
     except KeyboardInterrupt:  # Ctrl-C (it reached the workers too) or SIGTERM
         stop_workers(processes)
@@ -264,6 +268,17 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
                   if failed(study, campaign)]  # fmt: skip
     if unfinished:
         raise SystemExit("\n".join(unfinished))
+
+
+def wait_any(processes: list[subprocess.Popen], seconds: float) -> None:
+    """Until ``seconds`` have passed or one more process has exited: ``run`` ends as soon as its workers do."""
+
+    def alive() -> int:
+        return sum(process.poll() is None for process in processes)
+
+    deadline, running = time.monotonic() + seconds, alive()
+    while time.monotonic() < deadline and alive() == running:
+        time.sleep(0.1)
 
 
 def stop_workers(processes: list[subprocess.Popen]) -> None:
