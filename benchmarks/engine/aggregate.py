@@ -80,7 +80,7 @@ def best_within(returns, times, budget: float, default: float = float("nan")) ->
 
 def performance_profile(scores: TaskScores, taus: np.ndarray) -> np.ndarray:
     """Fraction of runs (each task weighted equally) whose score exceeds each tau."""
-    return np.mean([[np.mean(values > tau) for tau in taus] for values in scores.values()], axis=0)
+    return np.mean([np.mean(np.asarray(values)[:, None] > taus[None, :], axis=0) for values in scores.values()], axis=0)
 
 
 def profile_band(scores: TaskScores, taus: np.ndarray, reps: int = 2000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
