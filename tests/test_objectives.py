@@ -171,6 +171,23 @@ def test_objectives_in_training(env_id, representation, objectives, csv_logger):
         assert len(metrics["aux_nll"]) == 4 and np.isfinite(float(last["pevfa/aux_nll"]))
 
 
+@pytest.mark.parametrize("named", [("cl", "aux"), ("aux", "cl")])
+def test_aux_steps_come_before_cl_steps_as_in_algorithm_3(named, monkeypatch):
+    """Algorithm 3's iteration: the AUX steps, then the CL steps, in whichever order the objectives are named."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation_objectives=named,
+                     objective_kwargs={name: OBJECTIVE_FAST for name in named}, **FAST)  # fmt: skip
+    steps = []
+    for name, objective in model.policy.objectives.items():
+
+        def loss(*args, _name=name, _loss=objective.loss):
+            steps.append(_name)
+            return _loss(*args)
+
+        monkeypatch.setattr(objective, "loss", loss)
+    model.learn(64 * 3)  # 4 steps of each per iteration; none in the first (one policy recorded: nothing to contrast)
+    assert steps == (["aux"] * 4 + ["cl"] * 4) * 2
+
+
 @pytest.mark.parametrize(
     ("kwargs", "cl_kwargs", "train_freq", "steps"),
     [

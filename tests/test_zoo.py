@@ -68,7 +68,7 @@ def test_shipped_hyperparameters(algo):
     assert expected <= set(config)
     base = algo.removesuffix("_pevfa")
     zoo = yaml.safe_load((pathlib.Path(__import__("rl_zoo3").__file__).parent / "hyperparams" / f"{base}.yml").read_text())
-    if algo == "ppo_pevfa":  # every entry of rl-zoo3's ppo.yml but those of PyBullet and MiniGrid (not dependencies)
+    if algo in ("ppo_pevfa", "a2c_pevfa"):  # every entry of rl-zoo3's ppo.yml / a2c.yml but PyBullet's and MiniGrid's
         names = {k.replace("-v2", "-v5") for k in zoo if "Bullet" not in k and not k.startswith("MiniGrid-")}
         assert names <= set(config), sorted(names - set(config))
     if algo in OFF_POLICY:  # and of sac.yml / td3.yml but PyBullet's, gSDE's (refused) and FetchReach (dict, HER)

@@ -30,8 +30,8 @@ class A2CPeVFA(PeVFAAlgorithm, A2C):
     (``rollout_encoder_gradient=None``): A2C updates every few env steps, and the paper's schedule
     (:data:`~sb3_pevfa.PAPER_SCHEDULE`: 64 samples per 10 steps, the encoder also trained on every rollout) made it
     about 5x slower than A2C in rl-zoo3's CartPole-v1 settings; this one costs about 1.4x A2C's CPU time there
-    (``benchmarks/speed_zoo.py --setting a2c-cartpole``; docs/notes/2026-12-05-a2c-default-schedule.md). The CL and
-    AUX objectives step on the same cadence unless their own ``train_freq`` is given.
+    (``benchmarks/speed_zoo.py --setting a2c-cartpole``; docs/notes/2026-12-05-a2c-default-schedule.md). The CL
+    objective steps on the same cadence unless its own ``train_freq`` is given (AUX: every 10 env steps by default).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {

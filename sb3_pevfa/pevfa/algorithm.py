@@ -51,7 +51,7 @@ from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
-from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, RepresentationObjective
+from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, TRAINING_ORDER, RepresentationObjective
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -365,9 +365,10 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
         return losses
 
     def _train_objectives(self) -> dict[str, list[float]]:
-        """CL / AUX steps on batches of recorded policies (Algorithm 3), each on its own schedule and optimizer."""
+        """AUX, then CL steps on batches of recorded policies (Algorithm 3), each on its own schedule and optimizer."""
         metrics: dict[str, list[float]] = {}
-        for name, objective in self.policy.objectives.items():
+        for name in sorted(self.policy.objectives, key=TRAINING_ORDER.index):
+            objective = self.policy.objectives[name]
             if self.num_timesteps < objective.learning_starts:
                 continue
             credit = self._objective_credit.get(name, 0) + self._rollout_size()

@@ -22,6 +22,8 @@ from sb3_pevfa.pevfa.representations import (
 
 #: Valid entries of ``representation_objectives``.
 OBJECTIVES = ("cl", "aux")
+#: The order of their steps in an iteration, Algorithm 3's (AUX steps, then CL steps), whatever order they are named in
+TRAINING_ORDER = ("aux", "cl")
 #: The paper's environment steps per objective step (App. F.1)
 PAPER_TRAIN_FREQ = 10
 
@@ -70,7 +72,7 @@ class ContrastiveObjective(RepresentationObjective):
     ``sample_ratio`` of the state-action pairs.
 
     :param train_freq: Environment steps per step of this objective; None (default): those of the historical critic
-        updates (``history_train_freq``: PPOPeVFA 40, A2CPeVFA and ``PAPER_SCHEDULE`` the paper's 10), 10 where
+        updates (``history_train_freq``: PPOPeVFA 40, A2CPeVFA 200, ``PAPER_SCHEDULE`` the paper's 10), 10 where
         they are off
     :param momentum: EMA rate of the key encoder (paper: 0.01)
     """
