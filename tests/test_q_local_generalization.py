@@ -93,6 +93,9 @@ def test_the_conventional_critic_updates_as_sb3_sac_updates_its_critic():
     th.randn(model.batch_size, 1)  # SAC's update draws the actor's actions at the states first
     callback._train_critic(polyak=True)
     _assert_same_critics(twin, callback)
+    model.lr_schedule, model._current_progress_remaining = (lambda progress: 1e-3 * progress), 0.5
+    callback._train_critic(polyak=False)
+    assert callback.optimizer.param_groups[0]["lr"] == pytest.approx(5e-4)  # at the model's learning rate, as SB3's
 
 
 @pytest.mark.parametrize(
@@ -119,7 +122,10 @@ def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_sn
     frozen = copy.deepcopy(critic.state_dict())
     callback._window["start"] = model.replay_buffer.pos - 100  # the last 100 transitions as the window's
     callback._window["first_row"] -= 100
-    with th.no_grad():  # the live critics and encoder move, and a new snapshot is recorded, after the window opened
+    with th.no_grad():  # the live actor, critics and encoder move, and a new snapshot is recorded, after the window opened
+        generator = th.Generator().manual_seed(0)
+        for parameter in model.actor.parameters():  # both errors read the window's snapshot, not the live actor
+            parameter.add_(0.5 * th.randn(parameter.shape, generator=generator))
         for q_net in critic.q_networks:
             q_net.head.output.bias += 1.0
         critic.representation.projection.bias += 0.5

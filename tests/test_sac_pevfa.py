@@ -245,7 +245,8 @@ def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     model.learn(260)  # 160 gradient steps: 1 + 8 snapshots, the latest 3 kept
     assert model.history.n_policies == 3 and model.history.policy_ids == [6, 7, 8]
     latest_code = model.history.records([8], fields=("codes",))["codes"][0]
-    np.testing.assert_array_equal(model.policy.critic.behaviour_codes.numpy(), latest_code)
+    for critic in (model.policy.critic, model.policy.critic_target):  # the target's values read the latest code too
+        np.testing.assert_array_equal(critic.behaviour_codes.numpy(), latest_code)
     model.save(tmp_path / "model")
     model.save_history(tmp_path / "snapshots")
     loaded = SACPeVFA.load(tmp_path / "model", env=model.get_env())
@@ -284,10 +285,18 @@ def test_a_snapshot_update_fits_each_transition_to_its_snapshots_target_written_
         return policy_id
 
     model.record_snapshot = recorded  # type: ignore[method-assign]
+    if pevfa_class is SACPeVFA:  # log-stds above SB3's clamp (2), where the snapshots' are clamped as SB3's
+        model.actor.log_std.bias.data.fill_(5.0)
+    else:  # smoothing noise that reaches its clip
+        model.target_policy_noise = 1.0
     model.learn(300)  # the snapshot updates train the encoder: its target copy lags behind
     ids = list(actors)[-3:-1]  # two snapshots, neither the live actor
     per_policy = model.history_batch_size // model.history_batch_policies
     data = model.replay_buffer.sample(2 * per_policy)
+    # terminal transitions (Pendulum has none) and n-step discounts (SB3's NStepReplayBuffer) of their own
+    generator = th.Generator().manual_seed(0)
+    dones = (th.rand(data.dones.shape, generator=generator) < 0.3).float()
+    data = data._replace(dones=dones, discounts=0.5 + 0.4 * th.rand(data.rewards.shape, generator=generator))
     model.history.sample_policy_ids = lambda n: np.array(ids)  # type: ignore[method-assign]
     model.replay_buffer.sample = lambda n, env=None: data if n == 2 * per_policy else pytest.fail(n)  # type: ignore[method-assign]
     critic, target = model.policy.critic, model.policy.critic_target
@@ -304,10 +313,12 @@ def test_a_snapshot_update_fits_each_transition_to_its_snapshots_target_written_
         else:
             mean = th.cat([actors[k](data.next_observations[b]) for k, b in zip(ids, blocks)])
             noise = th.randn_like(mean) * model.target_policy_noise
+            assert (noise.abs() > model.target_noise_clip).any()  # the clip binds
             next_actions, entropy = (mean + noise.clamp(-model.target_noise_clip, model.target_noise_clip)).clamp(-1, 1), 0.0
         next_q = th.cat([th.cat(target(data.next_observations[b], next_actions[b], chi), dim=1)
                          for b, (_, chi) in zip(blocks, chis)])  # fmt: skip
-        y = data.rewards + (1 - data.dones) * model.gamma * (next_q.min(dim=1, keepdim=True).values - entropy)
+        y = data.rewards + (1 - data.dones) * data.discounts * (next_q.min(dim=1, keepdim=True).values - entropy)
+        assert 0 < data.dones.sum() < len(data.dones)
         values = th.cat([th.cat(critic(data.observations[b], data.actions[b], chi), dim=1)
                          for b, (chi, _) in zip(blocks, chis)])  # fmt: skip
         scale = 0.5 if pevfa_class is SACPeVFA else 1.0  # SB3's SAC and TD3 critic losses
