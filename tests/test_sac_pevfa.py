@@ -382,19 +382,23 @@ def test_sb3s_positional_learning_rate_is_told_to_come_by_keyword(pevfa_class, b
         pevfa_class("MlpPolicy", "Pendulum-v1", 3e-4)
 
 
-def test_several_envs_under_vecnormalize():
+@pytest.mark.parametrize("representation", ["opr", "spr"])
+def test_several_envs_under_vecnormalize(representation):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
-    model = SACPeVFA("MlpPolicy", env, snapshot_freq=10, history_train_freq=2, history_batch_size=32,
-                     history_batch_policies=4, **tiny())  # fmt: skip
+    model = SACPeVFA("MlpPolicy", env, representation=representation, snapshot_freq=10, history_train_freq=2,
+                     history_batch_size=32, history_batch_policies=4, **tiny())  # fmt: skip
     seen = []
     sample = model.replay_buffer.sample
-    model.replay_buffer.sample = lambda n, env=None: seen.append(env) or sample(n, env=env)  # type: ignore[method-assign]
+    model.replay_buffer.sample = lambda n, env=None: seen.append((n, env)) or sample(n, env=env)  # type: ignore[method-assign]
     model.learn(300)
     assert model.history.n_policies > 5 and model.logger.name_to_value["pevfa/n_history_updates"] > 0
-    assert seen and all(e is env for e in seen)  # the snapshots' transitions in today's normalization, as SB3's
+    # the snapshots' transitions (and SPR's states of each snapshot) in today's normalization, as SB3's
+    assert seen and all(e is env for _, e in seen)
+    pairs = model.history.n_state_action_pairs
+    assert (pairs > 0 and (pairs, env) in seen) == (representation == "spr")
 
 
 @pytest.mark.parametrize(("pevfa_class", "representation"), [(SACPeVFA, "opr"), (TD3PeVFA, "opr"), (SACPeVFA, "spr")])
