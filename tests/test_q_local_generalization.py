@@ -113,8 +113,13 @@ def test_the_conventional_target_moves_on_sb3s_schedule(pevfa_class, expected):
     assert polyaks == expected and callback._updates == 8
 
 
-def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_snapshot():
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=50, gamma=0.9, **tiny())
+@pytest.mark.parametrize("normalized", [False, True])
+def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_snapshot(normalized):
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = VecNormalize(make_vec_env("Pendulum-v1", seed=0)) if normalized else "Pendulum-v1"
+    model = SACPeVFA("MlpPolicy", env, snapshot_freq=50, gamma=0.9, **tiny())
     callback = QLocalGeneralizationCallback()
     model.learn(300, callback=callback)
     policy_id, critic = model.history.latest_policy_id, model.policy.critic
@@ -135,7 +140,8 @@ def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_sn
     callback._close_window()
     closed = callback._closed
     rows = (model.replay_buffer.pos - 100 + np.arange(100)) % model.replay_buffer.buffer_size
-    observations = th.as_tensor(model.replay_buffer.observations[rows, 0])
+    observations = model.replay_buffer.observations[rows, 0]  # as the env gave them, unnormalized
+    observations = th.as_tensor(env.normalize_obs(observations) if normalized else observations)  # as the critics read them
     actions = th.as_tensor(model.replay_buffer.actions[rows, 0])
     record = PolicyRecord.from_numpy(model.history.records([policy_id]))
 
