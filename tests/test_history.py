@@ -351,3 +351,48 @@ def test_grouped_sampling_after_evictions_a_sampleless_record_and_a_reload(tmp_p
     for _ in range(5):
         for got, want in zip(loaded.sample_grouped(16, 4, exclude_policy=4), history.sample_grouped(16, 4, exclude_policy=4)):
             np.testing.assert_array_equal(got, want)
+
+
+def test_one_add_larger_than_the_buffer_keeps_its_newest_samples_and_every_sample_can_be_drawn():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, buffer_size=10, seed=0)
+    pid = history.add_record(_record(0))
+    history.add_samples(np.zeros((15, 3), np.float32), np.arange(15, dtype=np.float32), pid)
+    assert history.n_samples == history.sample_count(pid) == 10
+    np.testing.assert_array_equal(history.samples()[1], np.arange(5, 15))
+    drawn = np.concatenate([history.sample(32)[1] for _ in range(50)])  # uniform: the oldest and newest included
+    assert set(drawn.tolist()) == set(range(5, 15))
+    single = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    _fill(single, 1, 1)
+    assert single.sample(4)[1].tolist() == [0.0] * 4
+
+
+def test_grouped_draws_are_uniform_over_policies_of_one_sample_and_see_a_new_record():
+    history = PolicyHistory(OBS, ACT, 5, n_state_action_pairs=4, seed=0)
+    _fill(history, 3, 1)
+    ids = np.concatenate([history.sample_grouped(3, 3)[2] for _ in range(3000)])
+    np.testing.assert_allclose(np.bincount(ids, minlength=3) / len(ids), [1 / 3] * 3, atol=0.03)
+    # a record added after draws: the latest policy is now 3, without samples, so policy 2's samples are eligible
+    history.add_record(_record(3))
+    drawn = np.concatenate([history.sample_grouped(8, 2, exclude_policy=3)[2] for _ in range(20)])
+    assert set(drawn.tolist()) == {0, 1, 2}
+
+
+@pytest.mark.parametrize(
+    ("field", "other"),
+    [
+        ("action_space_details", dict(action_space=gym.spaces.Box(-2, 2, (1,), np.float32))),  # other bounds
+        ("code_dim", dict(code_dim=3)),
+        ("n_state_action_pairs", dict(n_state_action_pairs=8)),
+        ("representation", dict(representation="opr")),
+        ("n_params", dict(n_params=6)),
+    ],
+)
+def test_load_names_the_field_that_differs(tmp_path, field, other):
+    kwargs = dict(observation_space=OBS, action_space=gym.spaces.Box(-1, 1, (1,), np.float32), n_params=5,
+                  n_state_action_pairs=4, code_dim=2, representation="random")  # fmt: skip
+    saved = PolicyHistory(**kwargs)
+    saved.add_record(_record(0, code_dim=2))
+    saved.save(tmp_path / "h")
+    with pytest.raises(ValueError, match=f"{field}: file has"):
+        PolicyHistory(**{**kwargs, **other}).load(tmp_path / "h")
+    PolicyHistory(**kwargs).load(tmp_path / "h")  # the same settings load
