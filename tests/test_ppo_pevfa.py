@@ -411,7 +411,9 @@ def test_resume_with_history_equals_uninterrupted_run(tmp_path, update_order):
     reference.learn(192, reset_num_timesteps=False)
 
     resumed = PPOPeVFA.load(tmp_path / "model", env=make_env(), restore_rng_state=True)
-    resumed.load_history(tmp_path / "history")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the history of the model's own moment: nothing to warn of
+        resumed.load_history(tmp_path / "history")
     resumed.learn(192, reset_num_timesteps=False)
     assert resumed.history.policy_ids == reference.history.policy_ids
     for got, want in zip(resumed.history.samples(), reference.history.samples()):
@@ -716,6 +718,15 @@ def test_history_callback_on_plain_sb3(tmp_path, algo):
     np.testing.assert_array_equal(history.records([history.latest_policy_id])["params"][0], live)
     # the last rollout's samples with their value targets
     np.testing.assert_array_equal(history.samples()[1][-32:], model.rollout_buffer.returns.flatten())
+    # each rollout's record at its first step, with the mean return of the episodes that ended in that rollout
+    info = [history.record_info(i) for i in history.policy_ids]
+    assert [record["num_timesteps"] for record in info] == [0, 32, 64, 96, 128]
+    ends = np.cumsum([episode["l"] for episode in model.ep_info_buffer])  # one env: each episode's last step
+    returns = np.array([episode["r"] for episode in model.ep_info_buffer])
+    assert len(ends) > 2 and ends[-1] <= 128
+    for k, record in enumerate(info[:-1]):
+        ended = returns[(ends > 32 * k) & (ends <= 32 * (k + 1))]
+        assert record.get("episode_return") == (pytest.approx(ended.mean()) if len(ended) else None), k
     history.save(tmp_path / "h")
     loaded = PolicyHistory(model.observation_space, model.action_space, history.n_params, 10).load(tmp_path / "h")
     assert loaded.policy_ids == history.policy_ids
