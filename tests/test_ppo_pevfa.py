@@ -304,6 +304,27 @@ def test_a_history_under_a_loaded_vec_normalize(tmp_path):
     assert loaded.env is loaded_env  # the refused env did not replace it
 
 
+def test_a_history_of_transitions_under_vec_normalize_loads_every_stored_field(tmp_path):
+    """Recomputed targets under VecNormalize keep raw rewards and time-limit bootstraps per sample and each rollout's
+    bootstrap: a saved and loaded history holds every one of them as it was."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, history_targets="recomputed", **FAST).learn(192)
+    history = model.history
+    model.save_history(tmp_path / "history")
+    loaded = PPOPeVFA("MlpPolicy", env, history_targets="recomputed", **FAST)
+    with pytest.warns(UserWarning, match="not the history of this model's moment"):  # a fresh model: at step 0
+        loaded.load_history(tmp_path / "history")
+    rows = np.arange(history.n_samples)
+    want, got = history._samples.get(rows), loaded.history._samples.get(rows)
+    assert set(got) == set(want) >= {"raw_rewards", "raw_bootstraps", "reward_scales"}
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    assert list(loaded.history._bootstraps) == list(history._bootstraps) == history.policy_ids[:-1]
+    for policy_id, bootstrap in history._bootstraps.items():
+        for name, array in bootstrap.items():
+            np.testing.assert_array_equal(loaded.history._bootstraps[policy_id][name], array, err_msg=name)
+
+
 def test_a_vec_normalize_it_cannot_re_express_is_announced_once(monkeypatch):
     class MyNormalize(VecNormalize):
         pass
