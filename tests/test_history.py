@@ -72,8 +72,9 @@ def test_dict_observations_and_save_load_roundtrip(tmp_path):
     for i in range(3):
         record = _record(i, n_pairs=0, code_dim=2)
         record["states"] = np.zeros((0, 2 + 16), np.float32)
-        pid = history.add_record(record)
+        pid = history.add_record(record, n_updates=10 * i, num_timesteps=60 * i)
         history.add_samples({"a": np.full((2, 30, 2), i), "img": np.full((2, 30, 4, 4, 1), i)}, np.full((2, 30), i), pid)
+        history.update_record_info(pid, episode_return=0.5 + i)
     assert history.n_samples == 150
     obs, _, _ = history.sample(10)
     assert obs["img"].dtype == np.uint8 and obs["img"].shape == (10, 4, 4, 1)
@@ -83,6 +84,10 @@ def test_dict_observations_and_save_load_roundtrip(tmp_path):
     )
     loaded.load(tmp_path / "hist")
     assert loaded.policy_ids == history.policy_ids
+    assert [loaded.record_info(i) for i in range(3)] == [
+        {"n_updates": 10 * i, "num_timesteps": 60 * i, "episode_return": 0.5 + i} for i in range(3)
+    ]
+    assert [loaded.sample_count(i) for i in range(3)] == [history.sample_count(i) for i in range(3)]
     for a, b in zip(history.samples(), loaded.samples()):
         if isinstance(a, dict):
             assert all(np.array_equal(a[k], b[k]) for k in a)
