@@ -250,6 +250,7 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     for size in range(1, 41):
         runs = {"a": rng.normal(size=size), "b": rng.lognormal(size=1 + size % 3)}
         assert aggregate.iqm(runs) == float(trim_mean(np.concatenate([runs["a"], runs["b"]]), 0.25))
+    assert np.isnan(aggregate.iqm({"a": np.array([1.0, 2, 3, np.nan, 5, 6, 7, 8])}))  # as scipy's: not trimmed away
     assert aggregate.mean(scores) == pytest.approx((2.0 + 2.5) / 2)
     low, high = aggregate.stratified_bootstrap_ci(scores, aggregate.mean, reps=500)
     assert 1.0 < low < aggregate.mean(scores) < high < 3.5
@@ -257,6 +258,7 @@ def test_aggregate_iqm_bootstrap_and_profiles_by_hand():
     assert aggregate.stratified_bootstrap_ci({"a": np.ones(3), "b": np.full(2, 2.0)}, aggregate.mean) == (1.5, 1.5)
     # tasks weigh equally: task a has 2 of 3 runs above 1.5, task b 1 of 2
     np.testing.assert_allclose(aggregate.performance_profile(scores, np.array([0.5, 1.5, 5.0])), [1.0, (2 / 3 + 1 / 2) / 2, 0])
+    assert aggregate.performance_profile({"a": [2.0], "b": np.float64(0.0)}, [1.0]).tolist() == [0.5]  # lists, one score
 
 
 def test_training_logs_parse_sb3s_own_tables():

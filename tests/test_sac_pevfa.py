@@ -296,7 +296,9 @@ def test_a_snapshot_update_fits_each_transition_to_its_snapshots_target_written_
     # terminal transitions (Pendulum has none) and n-step discounts (SB3's NStepReplayBuffer) of their own
     generator = th.Generator().manual_seed(0)
     dones = (th.rand(data.dones.shape, generator=generator) < 0.3).float()
-    data = data._replace(dones=dones, discounts=0.5 + 0.4 * th.rand(data.rewards.shape, generator=generator))
+    discounts = 0.5 + 0.4 * th.rand(data.rewards.shape, generator=generator)
+    data = data._replace(dones=dones, discounts=discounts) if "discounts" in data._fields else data._replace(dones=dones)
+    discounts = discounts if "discounts" in data._fields else model.gamma  # SB3 < 2.7: no n-step returns
     model.history.sample_policy_ids = lambda n: np.array(ids)  # type: ignore[method-assign]
     model.replay_buffer.sample = lambda n, env=None: data if n == 2 * per_policy else pytest.fail(n)  # type: ignore[method-assign]
     critic, target = model.policy.critic, model.policy.critic_target
@@ -317,7 +319,7 @@ def test_a_snapshot_update_fits_each_transition_to_its_snapshots_target_written_
             next_actions, entropy = (mean + noise.clamp(-model.target_noise_clip, model.target_noise_clip)).clamp(-1, 1), 0.0
         next_q = th.cat([th.cat(target(data.next_observations[b], next_actions[b], chi), dim=1)
                          for b, (_, chi) in zip(blocks, chis)])  # fmt: skip
-        y = data.rewards + (1 - data.dones) * data.discounts * (next_q.min(dim=1, keepdim=True).values - entropy)
+        y = data.rewards + (1 - data.dones) * discounts * (next_q.min(dim=1, keepdim=True).values - entropy)
         assert 0 < data.dones.sum() < len(data.dones)
         values = th.cat([th.cat(critic(data.observations[b], data.actions[b], chi), dim=1)
                          for b, (chi, _) in zip(blocks, chis)])  # fmt: skip

@@ -276,8 +276,8 @@ def wait_any(processes: list[subprocess.Popen], seconds: float) -> None:
     def alive() -> int:
         return sum(process.poll() is None for process in processes)
 
-    deadline, running = time.monotonic() + seconds, alive()
-    while time.monotonic() < deadline and alive() == running:
+    deadline, n_alive = time.monotonic() + seconds, alive()
+    while time.monotonic() < deadline and alive() == n_alive > 0:
         time.sleep(0.1)
 
 

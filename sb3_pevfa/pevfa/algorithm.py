@@ -8,7 +8,7 @@ One iteration, as :meth:`PeVFAAlgorithm.train` reads:
 1. roll out pi_t (:meth:`collect_rollouts`): pi_t is recorded first and becomes the critic's behaviour policy; its
    ``(observation, value target)`` samples are appended to the history when the rollout ends, and a representation
    that reads rollouts gets its observations (``observe_rollout`` of the policy);
-2. CL / AUX steps on batches of recorded policies (:meth:`_train_objectives`);
+2. AUX, then CL steps on batches of recorded policies (:meth:`_train_objectives`);
 3. extra critic updates on the samples of historical policies 0..t-1, chi recomputed by the current encoder
    (:meth:`_train_on_history`);
 4. the base algorithm's actor-critic update on the rollout (``update_order="joint"``), or critic steps on the
@@ -51,7 +51,7 @@ from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.normalization import RolloutRecorder, find_vec_normalize
-from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, TRAINING_ORDER, RepresentationObjective
+from sb3_pevfa.pevfa.objectives import PAPER_TRAIN_FREQ, RepresentationObjective, training_rank
 from sb3_pevfa.pevfa.policies import PeVFAActorCriticPolicy
 from sb3_pevfa.pevfa.recorder import PolicyRecorder
 from sb3_pevfa.pevfa.records import PolicyRecord, batch_size, rows
@@ -367,7 +367,7 @@ class PeVFAAlgorithm(ModelFile, OnPolicyAlgorithm):
     def _train_objectives(self) -> dict[str, list[float]]:
         """AUX, then CL steps on batches of recorded policies (Algorithm 3), each on its own schedule and optimizer."""
         metrics: dict[str, list[float]] = {}
-        for name in sorted(self.policy.objectives, key=TRAINING_ORDER.index):
+        for name in sorted(self.policy.objectives, key=training_rank):
             objective = self.policy.objectives[name]
             if self.num_timesteps < objective.learning_starts:
                 continue

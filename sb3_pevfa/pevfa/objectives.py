@@ -28,6 +28,11 @@ TRAINING_ORDER = ("aux", "cl")
 PAPER_TRAIN_FREQ = 10
 
 
+def training_rank(name: str) -> int:
+    """Position of objective ``name`` in an iteration's steps: :data:`TRAINING_ORDER`, an objective not in it last."""
+    return TRAINING_ORDER.index(name) if name in TRAINING_ORDER else len(TRAINING_ORDER)
+
+
 class RepresentationObjective(nn.Module):
     """An extra loss on the encoder, trained every ``train_freq`` environment steps after ``learning_starts`` steps
     on ``batch_policies`` policies drawn from the history, by its own optimizer (``learning_rate``). ``train_freq``
