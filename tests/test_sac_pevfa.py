@@ -257,6 +257,30 @@ def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     loaded.learn(40, reset_num_timesteps=False)
 
 
+def test_the_target_critics_batch_norm_statistics_follow_the_snapshots_updates():
+    """SB3 copies the critic's BatchNorm statistics to its target at each of its updates; the snapshots' updates move
+    them after SB3's last copy, so they copy them again."""
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+    class Normalized(BaseFeaturesExtractor):
+        def __init__(self, observation_space):
+            super().__init__(observation_space, 3)
+            self.net = th.nn.Sequential(th.nn.Flatten(), th.nn.BatchNorm1d(3))
+
+        def forward(self, observations: th.Tensor) -> th.Tensor:
+            return self.net(observations)
+
+    extractor = dict(features_extractor_class=Normalized, share_features_extractor=False)
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, history_train_freq=2, history_batch_size=32,
+                     history_batch_policies=4, **tiny(**extractor))  # fmt: skip
+    model.learn(150)
+    statistics = [t.clone() for t in model.batch_norm_stats]
+    model.train(gradient_steps=2, batch_size=32)  # SB3's two steps (each copying the statistics), one snapshots' update
+    assert any(not th.equal(a, b) for a, b in zip(statistics, model.batch_norm_stats))
+    for live, target in zip(model.batch_norm_stats, model.batch_norm_stats_target):
+        th.testing.assert_close(target, live, rtol=0, atol=0)
+
+
 def test_the_snapshots_updates_train_the_critic_at_their_cadence():
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, history_train_freq=5, history_batch_size=32,
                      history_batch_policies=4, history_learning_starts=150, **tiny())  # fmt: skip
