@@ -402,6 +402,14 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
         pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs)
 
 
+def test_numpy_ints_are_ints():
+    """Counts from numpy or a search space (np.int64) are accepted as the ints they are."""
+    counts = dict(snapshot_freq=10, history_max_policies=5, history_train_freq=0, history_batch_size=64,
+                  history_batch_policies=8, history_learning_starts=0)  # fmt: skip
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **{name: np.int64(value) for name, value in counts.items()})
+    assert all(getattr(model, name) == value for name, value in counts.items())
+
+
 @pytest.mark.parametrize(("pevfa_class", "base"), [(SACPeVFA, "SAC"), (TD3PeVFA, "TD3")])
 def test_sb3s_positional_learning_rate_is_told_to_come_by_keyword(pevfa_class, base):
     with pytest.raises(TypeError, match=rf"got 0.0003: after the env come the PeVFA arguments; pass {base}'s own"):
