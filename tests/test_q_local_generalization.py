@@ -158,17 +158,20 @@ def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_sn
     assert closed["policy_id"] == policy_id
 
 
-def test_a_window_is_scored_on_the_transitions_whose_return_is_complete_enough():
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", gamma=0.9, **tiny())
+@pytest.mark.parametrize("normalized", [False, True])
+def test_a_window_is_scored_on_the_transitions_whose_return_is_complete_enough(normalized):
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = VecNormalize(make_vec_env("Pendulum-v1", seed=0)) if normalized else "Pendulum-v1"
+    model = SACPeVFA("MlpPolicy", env, gamma=0.9, **tiny())
     callback = QLocalGeneralizationCallback(tail_weight=0.01)
     model.learn(400, callback=callback)  # 200-step episodes: truncated at rows 199 and 399
     closed = {"start": 340, "first_row": callback._rows_added - 60, "policy_id": 0, "n_rows": 50, "timesteps": 400}
     closed.update({key: np.zeros(50) for key in ERROR_KEYS})  # predictions of 0: the error is the mean squared return
     callback._score(closed)
     buffer, rows = model.replay_buffer, np.arange(340, 400)
-    returns, _ = soft_monte_carlo_returns(
-        buffer.rewards[rows], buffer.dones[rows], np.zeros((60, 1), bool), callback.bonuses[rows], 0.9
-    )
+    rewards = env.normalize_reward(buffer.rewards[rows]) if normalized else buffer.rewards[rows]  # as the critics learn
+    returns, _ = soft_monte_carlo_returns(rewards, buffer.dones[rows], np.zeros((60, 1), bool), callback.bonuses[rows], 0.9)
     result = callback.results[-1]
     assert result["n_states"] == 17  # rows 340-356: at least 44 steps before the cut (0.9^44 < 0.01 < 0.9^43)
     np.testing.assert_allclose(result["pevfa_before"], np.mean(returns[:17, 0] ** 2), rtol=1e-6)
