@@ -450,3 +450,43 @@ def test_the_diagnostics_conventional_critic_trains_as_the_models_critic(rule):
     fresh.init_callback(model)
     second = fresh.critic[2].weight  # 400 x 400
     assert abs(second.std().item() * 400**0.5 - 1) < 0.03 and th.all(fresh.critic[2].bias == 0)
+
+
+def test_the_even_split_leaves_out_other_samples_each_epoch():
+    """The authors' split leaves N - n_batches * (N // n_batches) samples out of each epoch: drawn again each time."""
+    model = _model((30,), algorithm="ppo", critic_minibatches="even", history_train_freq=0)
+    _rollout(model)  # 150 samples: 4 minibatches of 37 per epoch, 2 left out
+    model.rollout_buffer.observations[:, 0, 0] = np.arange(150)  # each sample known by its state
+    seen = []
+    predict = model.policy.predict_values
+    model.policy.predict_values = lambda obs, *a: seen.append(obs.detach().clone()) or predict(obs, *a)  # type: ignore
+    model._train_critic_on_rollout()
+    assert [len(batch) for batch in seen] == [37] * 40
+    assert len(th.unique(th.cat(seen), dim=0)) == 150  # every sample in some epoch
+
+
+def test_a_full_batch_actor_update_reads_every_envs_samples():
+    env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    model = PPOPeVFA("MlpPolicy", env, n_steps=32, batch_size=16, n_epochs=3, update_order="critic_first",
+                     actor_batch_size="full", representation="none", history_train_freq=0, seed=0)  # fmt: skip
+    _rollout(model)
+    sizes = []
+    evaluate = model.policy.evaluate_actions
+    model.policy.evaluate_actions = lambda obs, *a, **k: sizes.append(len(obs)) or evaluate(obs, *a, **k)  # type: ignore
+    with model.policy.critic_frozen():
+        model._train_actor_critic()
+    assert sizes == [64] * 3  # one batch of both envs' 32 steps per epoch
+
+
+def test_make_authors_env_is_seeded():
+    def first(seed: int) -> np.ndarray:
+        return make_authors_env("Pendulum-v1", seed=seed).reset()
+
+    assert np.array_equal(first(0), first(0)) and not np.array_equal(first(0), first(1))
+
+
+@pytest.mark.parametrize("scale", [0.5, 13.0])
+def test_a_log_std_learning_rate_scale_other_than_one_has_its_group(scale):
+    model = _model(algorithm="ppo", policy_kwargs=dict(log_std_lr_scale=scale))
+    group = next(g for g in model.policy.optimizer.param_groups if g.get("name") == "log_std")
+    assert group["params"] == [model.policy.log_std] and group["lr"] == pytest.approx(1e-4 * scale)
