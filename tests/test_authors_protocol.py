@@ -440,11 +440,13 @@ def test_the_diagnostics_conventional_critic_trains_as_the_models_critic(rule):
 
     model = _model((30,), critic_minibatches=rule)
     callback = LocalGeneralizationCallback(net_arch=(128, 128))
-    sizes = []
+    sizes, seen = [], []
     model.learn(150, callback=callback)  # one rollout of 5 episodes: 150 samples
     callback.critic.register_forward_hook(lambda module, inputs, output: sizes.append(len(inputs[0])))
-    callback._train_critic(th.zeros(150, 1), th.zeros(150))
+    callback.critic.register_forward_hook(lambda module, inputs, output: seen.append(inputs[0][:, 0].clone()))
+    callback._train_critic(th.arange(150.0)[:, None], th.zeros(150))
     assert sizes == ([37] * 4 if rule == "even" else [32, 32, 32, 32, 22]) * 10  # 150 // (150 // 32) = 37
+    assert len(th.unique(th.cat(seen))) == 150  # the even split leaves out other samples each epoch
     assert callback.optimizer.defaults["eps"] == 1e-8  # theirs (SB3's: 1e-5)
     fresh = LocalGeneralizationCallback(net_arch=(400, 400))
     fresh.init_callback(model)
