@@ -31,6 +31,14 @@ class DictPendulum(gym.ObservationWrapper):
         return {"angle": observation[:2], "speed": observation[2:]}
 
 
+@pytest.fixture(autouse=True)
+def distribution_argument_checks():
+    """Each test starts with torch.distributions' argument checks on, as a process that never compiled: the first
+    ``torch.compile`` (SB3's own save/load test) turns them off for the whole process (torch._dynamo's patch), and a
+    NaN reaching a distribution would then pass silently in every later test of that pytest worker."""
+    th.distributions.Distribution.set_default_validate_args(True)
+
+
 def _can_flush_denormals() -> bool:
     flushed = th.set_flush_denormal(True)
     th.set_flush_denormal(False)
