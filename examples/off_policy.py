@@ -4,7 +4,13 @@ buffer with the snapshots, load both, and go on training where it stopped.
 python examples/off_policy.py                      # SACPeVFA on InvertedPendulum-v5, 2 x 10k steps
 python examples/off_policy.py --algo td3_pevfa     # TD3PeVFA
 python examples/off_policy.py --tiny               # seconds (CI)
+
+Needs the diagnostics extra, and for the default env the mujoco one: pip install -e ".[diagnostics,mujoco]"
 """
+
+from sb3_pevfa.extras import exit_without_extra
+
+exit_without_extra("diagnostics", "examples/off_policy.py")
 
 import argparse
 import pathlib

@@ -35,6 +35,7 @@ def main() -> None:
     # PPO trains whole rollouts of n_steps: the steps taken, not the ones asked for
     print(f"{args.env} PPOPeVFA({args.representation}) after {model.num_timesteps} steps: return {mean:.1f} +- {std:.1f}")
     print(model.history)
+    args.out.mkdir(parents=True, exist_ok=True)
     model.save(args.out / "model")
     model.save_history(args.out / "history")
     print(f"saved {args.out / 'model.zip'} and {args.out / 'history.npz'}")

@@ -1,5 +1,6 @@
-"""The optional extras of the package (``pip install "sb3-pevfa[diagnostics]"``): what each one installs, and a clear
-message where one is missing, in place of a bare ``ModuleNotFoundError`` from deep inside an import."""
+"""The optional extras of the package (``pip install -e ".[diagnostics]"`` in the repository's checkout): what each
+one installs, and a clear message where one is missing, in place of a bare ``ModuleNotFoundError`` from deep inside
+an import."""
 
 import importlib.util
 import sys
@@ -31,8 +32,8 @@ def missing_extra(extra: str, what: str, modules: tuple[str, ...] | None = None)
     if not missing:
         return None
     return (
-        f"{what} needs the '{extra}' extra (missing: {', '.join(missing)}): pip install \"sb3-pevfa[{extra}]\", "
-        f'or pip install -e ".[{extra}]" in a clone'
+        f"{what} needs the '{extra}' extra (missing: {', '.join(missing)}): pip install -e \".[{extra}]\" in the "
+        "repository's checkout"
     )
 
 

@@ -788,7 +788,7 @@ def test_bad_input_errors():
             PPOPeVFA("MlpPolicy", env, **kwargs)
     with pytest.raises(TypeError, match="PeVFA policy"):
         PPOPeVFA(ActorCriticPolicy, env)
-    with pytest.raises(ValueError, match="Policy"):
+    with pytest.raises(ValueError, match=r"^Unknown policy 'LstmPolicy' for PPOPeVFA, valid choices: \['CnnPolicy', 'Mlp"):
         PPOPeVFA("LstmPolicy", env)
 
     class TupleActions(gym.Env):

@@ -402,6 +402,19 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
         pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs)
 
 
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_a_policy_name_it_does_not_take_is_refused_with_the_valid_ones(pevfa_class):
+    """SB3's "Policy X unknown" names no choice, and SB3's advice for a Dict space (MultiInputPolicy) led here."""
+    name = pevfa_class.__name__
+    with pytest.raises(ValueError, match=rf"'MultiInputPolicy' for {name} \(SB3's {name[:3]} takes it, for Dict obs"):
+        pevfa_class("MultiInputPolicy", "Pendulum-v1")
+    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .*\), valid choices: \['MlpPolicy'\]$"
+    with pytest.raises(ValueError, match=cnn):
+        pevfa_class("CnnPolicy", "Pendulum-v1")
+    with pytest.raises(ValueError, match=rf"^Unknown policy 'MlpPolicyy' for {name}, valid choices: \['MlpPolicy'\]$"):
+        pevfa_class("MlpPolicyy", "Pendulum-v1")
+
+
 def test_numpy_ints_are_ints():
     """Counts from numpy or a search space (np.int64) are accepted as the ints they are."""
     counts = dict(snapshot_freq=10, history_max_policies=5, history_train_freq=0, history_batch_size=64,

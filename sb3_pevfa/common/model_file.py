@@ -17,6 +17,8 @@ from sb3_pevfa.common.checks import check_argument_names, init_parameters
 
 #: The keyword arguments of SB3's ``load`` (``env``, ``device``, ``custom_objects``, ...)
 SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
+#: What SB3's other policy names are for, said where a PeVFA algorithm does not take one
+POLICY_PURPOSES = {"CnnPolicy": "image observations through a CNN", "MultiInputPolicy": "Dict observations"}
 
 
 def sb3_algorithm(cls: type) -> str:
@@ -82,6 +84,18 @@ class ModelFile:
             th.set_rng_state(rng_states["torch"])
             np.random.set_state(rng_states["numpy"])
         return model
+
+    def _get_policy_from_name(self, policy_name: str) -> type:
+        """SB3's, whose ValueError names the valid choices and, for a name the SB3 algorithm takes, what it is for."""
+        if policy_name in self.policy_aliases:  # type: ignore[attr-defined]
+            return self.policy_aliases[policy_name]  # type: ignore[attr-defined]
+        base = next(klass for klass in type(self).__mro__ if klass.__name__ == sb3_algorithm(type(self)))
+        reason = ""
+        if policy_name in base.policy_aliases:
+            purpose = POLICY_PURPOSES.get(policy_name, "another policy")
+            reason = f" (SB3's {base.__name__} takes it, for {purpose}; {type(self).__name__} does not support them)"
+        valid = sorted(self.policy_aliases)  # type: ignore[attr-defined]
+        raise ValueError(f"Unknown policy {policy_name!r} for {type(self).__name__}{reason}, valid choices: {valid}")
 
     def _require_env(self) -> None:
         """A ValueError, before learning, where the model has no env (SB3 asserts it without a message)."""

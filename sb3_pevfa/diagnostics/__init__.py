@@ -1,6 +1,6 @@
 """Diagnostics of the paper: local and global value generalization, embedding maps, zero-shot policy values.
 
-They need the ``diagnostics`` extra (``pip install "sb3-pevfa[diagnostics]"``)."""
+They need the ``diagnostics`` extra (``pip install -e ".[diagnostics]"`` in the repository's checkout)."""
 
 from sb3_pevfa.extras import require_extra
 
