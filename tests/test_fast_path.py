@@ -9,6 +9,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_pevfa import PPOPeVFA
+from sb3_pevfa.pevfa.fast_path import predict_values
 
 FIELDS = ("observations", "actions", "log_probs", "rewards", "episode_starts", "values", "returns", "advantages")
 
@@ -50,6 +51,7 @@ def _run(env_id, fast_path: bool, **kwargs):
         ("CartPole-v1", dict(representation="spr")),  # Categorical, terminations
         ("DictPendulum", dict(representation="none")),
         ("Pendulum-v1", dict(use_sde=True, update_order="critic_first", clip_range_vf=0.2, target_kl=0.02)),
+        ("Pendulum-v1", dict(use_sde=True, sde_sample_freq=4)),  # the noise drawn again every 4 steps
         ("Pendulum-v1", dict(value_target_lambda=1.0, representation_objectives=("cl",))),
     ],
 )
@@ -66,6 +68,17 @@ def test_fast_path_matches_sb3(env_id, kwargs):
             assert np.allclose(a[name], b[name], rtol=1e-4, atol=1e-4 * (i + 1)), (i, name, np.abs(a[name] - b[name]).max())
     assert th.allclose(module_parameters(fast_model.policy), module_parameters(slow_model.policy), atol=1e-4)
     assert fast_model._n_updates == slow_model._n_updates
+
+
+def test_values_in_chunks_equal_one_pass(monkeypatch):
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=32, seed=0)
+    monkeypatch.setattr("sb3_pevfa.pevfa.fast_path.VALUE_CHUNK", 7)  # 20 observations: chunks of 7, 7 and 6
+    obs = th.as_tensor(np.random.default_rng(0).uniform(-1, 1, (20, 3)), dtype=th.float32)
+    chi = th.randn(20, model.policy.representation.embedding_dim)
+    with th.no_grad():
+        chunked, whole = predict_values(model.policy, obs, chi), model.policy.predict_values(obs, chi).flatten()
+        assert chunked.shape == (20,) and th.allclose(chunked, whole, atol=1e-6)
+        assert th.allclose(predict_values(model.policy, obs), model.policy.predict_values(obs).flatten(), atol=1e-6)
 
 
 def test_early_stopping_and_logs_match(tmp_path):

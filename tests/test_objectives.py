@@ -1,3 +1,5 @@
+import math
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,7 +11,7 @@ from sb3_pevfa import PPOPeVFA
 from sb3_pevfa.pevfa.arguments import PAPER_SCHEDULE
 from sb3_pevfa.pevfa.objectives import ActionPredictionObjective, ContrastiveObjective, make_objective
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, record_policy
-from sb3_pevfa.pevfa.representations import make_representation
+from sb3_pevfa.pevfa.representations import OriginPolicyRepresentation, make_representation
 
 OBS = gym.spaces.Box(-1, 1, (4,), np.float32)
 
@@ -91,6 +93,86 @@ def test_action_prediction_lowers_nll(name, action_space):
     assert nll() < untrained - 0.2
     # the decoder relies on the embedding: another policy's embedding predicts this policy's actions worse
     assert nll() < nll(shuffle=True) - 0.1
+
+
+def _spy_on_encoder(representation) -> list:
+    """The (records, row_weights) each call of the encoder received."""
+    seen, forward = [], representation.forward
+
+    def spy(records, row_weights=None, **kwargs):
+        seen.append((records, row_weights))
+        return forward(records, row_weights, **kwargs)
+
+    representation.forward = spy
+    return seen
+
+
+@pytest.mark.parametrize("mask_ratio", [0.0, 1.0])
+def test_opr_augmentation_masks_hidden_rows_at_the_mask_ratio_never_the_output_layer(mask_ratio):
+    layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=6, n_pairs=8)
+    representation = OriginPolicyRepresentation(layout, 8)
+    seen = _spy_on_encoder(representation)
+    ContrastiveObjective(representation, batch_policies=2, mask_ratio=mask_ratio)._encode(representation, data)
+    ((_, (*hidden, output)),) = seen
+    for weights, (rows, _) in zip(hidden, layout.linear_shapes[:-1]):
+        assert th.equal(weights, th.full((6, rows), 1.0 - mask_ratio))  # 0: every row kept; 1: every row dropped
+    assert th.equal(output, th.ones(6, layout.linear_shapes[-1][0]))
+
+
+def test_opr_noise_corrupts_a_noise_ratio_of_the_parameters_with_gaussian_noise_of_noise_std():
+    layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=32, n_pairs=8)
+    representation = OriginPolicyRepresentation(layout, 8)
+    seen = _spy_on_encoder(representation)
+    th.manual_seed(0)
+    objective = ContrastiveObjective(representation, batch_policies=2, mask_ratio=0.0, noise_ratio=0.5, noise_std=0.3)
+    objective._encode(representation, data)
+    delta = seen[0][0].params - data.params
+    changed = delta != 0
+    assert abs(changed.float().mean().item() - 0.5) < 0.02  # of the 32 policies' 388 parameters each
+    assert abs(delta[changed].std().item() - 0.3) < 0.02 and abs(delta[changed].mean().item()) < 0.02
+
+
+def test_the_contrastive_key_is_the_momentum_encoders_and_each_policys_positive_its_own():
+    layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=6, n_pairs=8)
+    representation = OriginPolicyRepresentation(layout, 8)
+    objective = ContrastiveObjective(representation, batch_policies=2, mask_ratio=0.0)
+    with th.no_grad():  # the same encoders at first, W = I, no augmentation: logits Q Q^T, positives on the diagonal
+        query = representation(data)
+        expected = th.nn.functional.cross_entropy(query @ query.T, th.arange(6))
+        assert th.allclose(objective.loss(representation, data)[0], expected, atol=1e-5)
+        objective.key_encoder.projection.weight.zero_()  # every key 0: every logit 0, whatever the query
+        objective.key_encoder.projection.bias.zero_()
+    loss, _ = objective.loss(representation, data)
+    assert loss.item() == pytest.approx(math.log(6), abs=1e-6)
+    loss.backward()
+    assert all(parameter.grad is None for parameter in objective.key_encoder.parameters())
+
+
+def test_contrastive_defaults_are_algorithm_md_s():
+    layout, _ = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=1, n_pairs=8)
+    opr, spr = (
+        ContrastiveObjective(make_representation(name, layout, OBS, gym.spaces.Box(-1, 1, (2,)))) for name in ("opr", "spr")
+    )
+    assert opr.momentum == spr.momentum == 0.01 and (opr.learning_rate, spr.learning_rate) == (1e-3, 5e-4)
+    assert opr.mask_ratio == 0.1 and opr.noise_ratio == 0.0 and spr.sample_ratio == 0.8
+
+
+def test_the_action_prediction_loss_is_the_mean_nll_per_pair():
+    layout, data = _synthetic_policies(gym.spaces.Discrete(3), n_policies=6, n_pairs=8)
+    representation = make_representation("opr", layout, OBS, gym.spaces.Discrete(3), embedding_dim=8)
+    objective = ActionPredictionObjective(representation, OBS, gym.spaces.Discrete(3), pairs_per_policy=4)
+    with th.no_grad():
+        objective.action_net.weight.zero_()  # uniform over 3 actions: log 3 per pair, whatever the pairs' number
+        objective.action_net.bias.zero_()
+        assert objective.loss(representation, data)[0].item() == pytest.approx(math.log(3), abs=1e-6)
+
+
+def test_an_objective_waits_for_its_learning_starts():
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation_objectives=("cl",),
+                     objective_kwargs={"cl": {"learning_starts": 192, "train_freq": 16}}, **FAST)  # fmt: skip
+    model.learn(3 * 64)
+    # rollouts end at 64, 128 and 192 env steps: only the third has reached 192, and takes 64 // 16 = 4 steps
+    assert {int(state["step"]) for state in model.policy.cl_optimizer.state.values()} == {4}
 
 
 def test_objective_errors():

@@ -279,6 +279,22 @@ def test_wrappers_that_change_observations_outside_vec_normalize_keep_the_old_be
     model.learn(64)
 
 
+def test_the_reward_scale_is_one_without_norm_reward():
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1), norm_reward=False)
+    env.ret_rms.var[...] = 4.0
+    assert normalization.reward_scale(env) == 1.0
+    env.norm_reward = True
+    assert normalization.reward_scale(env) == pytest.approx(np.sqrt(4.0 + env.epsilon))
+
+
+def test_a_vec_normalize_of_another_observation_space_is_not_used(monkeypatch):
+    monkeypatch.setattr(normalization, "_warned", set())
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1))
+    with pytest.warns(UserWarning, match="A wrapper outside VecNormalize changes the observations"):
+        assert normalization.find_vec_normalize(env, gym.spaces.Box(-1, 1, (4,), np.float32)) is None
+    assert normalization.find_vec_normalize(env, env.observation_space) is env
+
+
 def test_a_history_under_a_loaded_vec_normalize(tmp_path):
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
     model = PPOPeVFA("MlpPolicy", env, **FAST).learn(256)

@@ -81,6 +81,19 @@ def test_opr_row_weights_drop_rows():
     assert not th.allclose(rep(data, row_weights=dropped), rep(data))
 
 
+def test_opr_layer_code_of_dropped_rows_is_the_mean_over_the_kept_ones():
+    policy = _policy(gym.spaces.Box(-1, 1, (2,)), net_arch=(8, 8))
+    layout = ActorLayout.from_policy(policy)
+    rep = OriginPolicyRepresentation(layout, 8, layer_arch=(8, 4))
+    data = _data([policy])
+    weights = [th.ones(1, rows) for rows, _ in layout.linear_shapes]
+    weights[0][0, ::2] = 0  # the first layer's odd rows kept
+    rows, _ = layout.split(data.params)
+    with th.no_grad():
+        expected = rep.row_encoders[0](rows[0][:, 1::2]).mean(dim=1)
+        assert th.allclose(rep.layer_codes(data, weights)[:, :4], expected, atol=1e-6)
+
+
 def test_spr_subsamples_only_in_training_mode():
     policy = _policy(gym.spaces.Box(-1, 1, (2,)))
     rep = make_representation("spr", ActorLayout.from_policy(policy), BOX_OBS, policy.action_space, 8)
@@ -105,6 +118,15 @@ def test_stats_and_rpr_are_fixed_features():
     out = stats(data)
     assert out.shape == (1, 7 * (2 * 3 + 1))
     assert th.isclose(out[0, 0], policy.mlp_extractor.policy_net[0].weight.mean(), atol=1e-6)
+    # every weight matrix, bias and the log-std: mean, std, min, quartiles, max (numpy's, by hand)
+    two = _data([policy, _policy(gym.spaces.Box(-1, 1, (2,)), seed=1)])
+    rows, log_std = layout.split(two.params)
+    expected = []
+    for tensor in [part for layer in rows for part in (layer[..., :-1], layer[..., -1])] + [log_std]:
+        values = tensor.flatten(start_dim=1).double().numpy()
+        quantiles = np.quantile(values, [0.0, 0.25, 0.5, 0.75, 1.0], axis=1).T
+        expected.append(np.concatenate([values.mean(1, keepdims=True), values.std(1, ddof=1, keepdims=True), quantiles], 1))
+    np.testing.assert_allclose(stats(two).numpy(), np.concatenate(expected, axis=1), rtol=1e-5, atol=1e-6)
     assert len(list(stats.parameters())) == 0 and len(list(rpr.parameters())) == 0
 
 
