@@ -592,6 +592,138 @@ def test_a_results_pages_table_and_summary_by_hand(monkeypatch):
     assert engine.report.summary(["c"], None, "ppo") == "0 of 12 runs complete, 1,000 env steps per run (provisional).\n"
 
 
+def _one_evaluation_runs(**tasks: tuple[list[float], list[float]]) -> dict:
+    """task -> (ppo's max average returns, opr-e2e's), one evaluation per run: the report's numbers at their
+    boundaries (spread seeds, values on each threshold)."""
+
+    def scored(value: float) -> dict:
+        return {"max_average_return": value, "cpu_seconds": 2.0, "curve": {"mean": [value], "cpu_s": [1.0], "steps": [1]}}
+
+    return {t: {"ppo": [scored(v) for v in base], "opr-e2e": [scored(v) for v in mine]} for t, (base, mine) in tasks.items()}
+
+
+# --- aggregate.py: the bootstrap's confidence level, independent (not paired) draws, the profile's strict ">" ---------
+def test_bootstrap_intervals_are_95_percent_percentiles_of_independent_draws():
+    # three seeds 0, 1, 2: a replicate of all three draws 0 has P = 1/27 = 3.7 % (> 2.5 %, < 5 %), so the 95 % CI's
+    # ends are the extremes 0 and 2 (mean of three; 3 runs trim none); a 90 % CI would be [1/3, 5/3]
+    assert aggregate.stratified_bootstrap_ci({"A": np.array([0.0, 1.0, 2.0])}) == (0.0, 2.0)
+    assert aggregate.normalized_bootstrap_ci({"A": np.array([0.0, 1.0, 2.0])}, {"A": np.ones(3)}) == (0.0, 2.0)
+    # the baseline's seeds are drawn apart from the variant's: means 1 and 3 against 3 and 1 (P 1/16 each) give the
+    # ratios 1/3 and 3; drawn with the same indices every ratio would be 1
+    low, high = aggregate.normalized_bootstrap_ci({"A": np.array([1.0, 3.0])}, {"A": np.array([1.0, 3.0])})
+    assert (low, high) == pytest.approx((1 / 3, 3.0))
+    # the profile counts scores strictly above tau; its band's low end at tau 0.5 is 0 (P 1/27 that no draw is above)
+    assert aggregate.performance_profile({"A": np.array([1.0, 2.0])}, np.array([1.0])).tolist() == [0.5]
+    low, high = aggregate.profile_band({"A": np.array([0.0, 1.0, 2.0])}, np.array([0.5]))
+    assert (low.tolist(), high.tolist()) == ([0.0], [1.0])
+
+
+def test_probability_of_improvement_weighs_tasks_equally():
+    # task A: 200 > 100 (1.0); task B: 50, 50, 50 < 100 (0.0): 0.5 over tasks, not 1 / 4 over the pooled pairs
+    x, y = {"A": np.array([200.0]), "B": np.full(3, 50.0)}, {"A": np.array([100.0]), "B": np.array([100.0])}
+    assert tables.probability_of_improvement(x, y) == 0.5
+
+
+# --- tables.target: the verdict line's boundaries -------------------------------------------------------------------
+def test_the_targets_tie_band_is_half_a_percent_both_sides_inclusive():
+    # +0.5 % and -0.5 %: ties (inclusive); +0.8 %: above (a 1 % band would tie it); -1 %: below
+    runs = _one_evaluation_runs(B=([100.0], [100.5]), C=([100.0], [99.5]), D=([100.0], [100.8]), E=([100.0], [99.0]))
+    assert tables.target(runs, "ppo", {})[0].startswith(
+        "- opr-e2e: above ppo on 1 of 4 tasks (tied on B 1.00x, C 0.99x; below on E 0.99x), IQM"
+    )
+
+
+def test_the_target_reads_the_iqm_and_the_mean_margin():
+    # normalized [1, 1, 1, 5]: IQM 1.00 (the mean would be 2.00); the task's mean 200 is 2x ppo's (its median a tie)
+    line = tables.target(_one_evaluation_runs(A=([100.0] * 4, [100.0, 100.0, 100.0, 500.0])), "ppo", {})[0]
+    assert line.startswith("- opr-e2e: above ppo on 1 of 1 tasks, IQM 1.00 [")
+    row = tables.aggregates(_one_evaluation_runs(A=([100.0] * 4, [100.0, 100.0, 100.0, 500.0])), "ppo")[0][3]
+    assert row.startswith("| opr-e2e | 1 | 4 | 1.00 [")
+
+
+def test_the_targets_ci_resamples_the_baseline_and_reads_low_then_high():
+    # opr-e2e 100, 100 against ppo 50, 150: a replicate's ppo mean is 50, 100 or 150 (P 1/4, 1/2, 1/4), the ratio
+    # 2, 1 or 0.67: the 95 % CI is [0.67, 2.00] (fixed at ppo's mean it would be [1.00, 1.00])
+    runs = _one_evaluation_runs(A=([50.0, 150.0], [100.0, 100.0]))
+    assert ", IQM 1.00 [0.67, 2.00]: missed by" in tables.target(runs, "ppo", {})[0]
+    assert tables.aggregates(runs, "ppo")[0][3].startswith("| opr-e2e | 1 | 2 | 1.00 [0.67, 2.00] |")
+
+
+def test_the_targets_bounds_are_met_at_equality_except_the_ci_s_lower_bound():
+    # every ratio 1.5: IQM 1.5 [1.5, 1.5]; IQM "at least" 1.5 is met, a lower bound "above" 1.5 is not
+    spec = {"variant": "opr-e2e", "tasks": 1, "of": "its 1 task", "iqm": 1.5, "low": 1.5, "speed": None}
+    runs = _one_evaluation_runs(A=([100.0] * 2, [150.0] * 2))
+    assert tables.target(runs, "ppo", {}, spec) == [
+        "- opr-e2e: above ppo on 1 of 1 tasks, IQM 1.50 [1.50, 1.50]: missed by 0.000 of the lower bound"
+    ]
+    assert tables.target(runs, "ppo", {}, {**spec, "low": None})[0].endswith(": met")
+    # Table 1's target at ratios of exactly 1.0 on 5 tasks: tied everywhere, 0.150 of IQM and 0.000 of the bound short
+    same = _one_evaluation_runs(**{t: ([100.0] * 2, [100.0] * 2) for t in "ABCDE"})
+    assert tables.target(same, "ppo", {})[0].endswith("missed by 5 task(s), 0.150 of IQM, 0.000 of the lower bound")
+    # SAC's speed bound at exactly 0.7x (70 against 100 steps per CPU-second): met
+    sac = {
+        t: {
+            "sac": [{**r, "steps_per_cpu_second": 100.0} for r in bv["ppo"]],
+            "opr": [{**r, "steps_per_cpu_second": 70.0} for r in bv["opr-e2e"]],
+        }
+        for t, bv in runs.items()
+    }
+    sac["B"] = sac["A"]
+    assert tables.target(sac, "sac", {}, tables.TARGETS["sac"])[0].endswith(
+        "0.70x sac's steps per CPU-second (median of 4 runs): met"
+    )
+
+
+# --- the results page's per-task ratios (tables.compact's columns) ---------------------------------------------------
+def test_ratios_at_the_baselines_cpu_time_per_step_and_speed_by_hand():
+    def base(cpu: float, boot: str, speed: float = 100.0, eval_cpu: float = 0.0) -> dict:
+        return {"cpu_seconds": cpu, "eval_cpu_seconds": eval_cpu, "steps_per_cpu_second": speed,
+                "max_average_return": 100.0, "worker": {"boot_id": boot}}  # fmt: skip
+
+    # ppo on machine a: 2 and 4 CPU-seconds of training (mean 3; its evaluations' 10 apart), on machine b: 12
+    ppo = [base(2.0, "a", eval_cpu=10.0), base(4.0, "a", speed=400.0), base(12.0, "b")]
+    run = {"curve": {"mean": [150.0, 300.0, 500.0], "cpu_s": [2.5, 3.5, 5.0]}, "steps_per_cpu_second": 100.0,
+           "worker": {"boot_id": "a"}, "max_average_return": 500.0}  # fmt: skip
+    # best within the mean of machine a's ppo training CPU (3 s): 150 (not 300 at the max, 500 at all machines' 6 s)
+    assert tables.at_baseline_cpu(run, ppo) == 150.0
+    # speed against machine a's ppo, 100, 100 and 400 steps per CPU-second: 100 / their mean 200 (not / median 100)
+    ppo.insert(0, base(2.0, "a"))
+    assert tables.speed_ratio(run, ppo, "steps_per_cpu_second") == 0.5
+    # per env step: the variant's mean max average return over ppo's: (100 + 100 + 400) / 3 / 100
+    mine = [{"max_average_return": v} for v in (100.0, 100.0, 400.0)]
+    assert tables.per_step(mine, [{"max_average_return": 100.0}]) == 2.0
+    # a baseline mean of exactly 0 is no base for a ratio
+    zero = {"Z": {"ppo": [{"max_average_return": 0.0}], "opr": [{"max_average_return": 5.0}]}}
+    assert tables.comparable(zero, "ppo", "opr") == []
+
+
+def test_the_speed_tables_cpu_minutes_are_training_minutes():
+    def timed(cpu: float) -> dict:
+        return {"cpu_seconds": cpu, "eval_cpu_seconds": 600.0, "steps_per_cpu_second": 100.0,
+                "steps_per_wall_second": 100.0, "max_average_return": 1.0,
+                "curve": {"mean": [1.0], "cpu_s": [1.0]}}  # fmt: skip
+
+    rows = tables.speed({"A": {"ppo": [timed(7200.0)], "opr": [timed(3600.0)]}}, "ppo")
+    assert rows[2] == "| A | 100 (100), 120 | 1.00x (1.00x), 1.00x, 60 |"
+
+
+def test_a_summarys_run_count_is_over_every_campaigns_grid(monkeypatch):
+    def run(value: float) -> dict:
+        return {"max_average_return": value, "cpu_seconds": 2.0, "steps_per_cpu_second": 1.0,
+                "steps_per_wall_second": 1.0, "curve": {"mean": [value], "cpu_s": [1.0], "steps": [1000]}}  # fmt: skip
+
+    first = definitions.Campaign("sb3", ("A",), ("ppo",), (0,), 1000, eval_freq=1000)
+    second = definitions.Campaign("sb3", ("A",), ("opr",), (0, 1, 2), 1000, eval_freq=1000)
+    runs = {"A": {"ppo": [run(100.0)], "opr": [run(200.0)]}}
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [first, second]))
+    text = engine.report.summary(["one", "two"], None, "ppo")
+    assert text.startswith("2 of 4 runs complete, 1,000 env steps per run (provisional).")
+    complete = definitions.Campaign("sb3", ("A",), ("opr",), (0,), 1000, eval_freq=1000)
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [first, complete]))
+    text = engine.report.summary(["one", "two"], None, "ppo")
+    assert text.startswith("2 of 2 runs complete, 1,000 env steps per run. ") and "provisional" not in text
+
+
 def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_compare(monkeypatch):
     # stratified: each task keeps its two runs, so the IQM of [1, 1, 3, 3] never moves; pooled draws would move it
     low, high = aggregate.stratified_bootstrap_ci({"A": np.array([1.0, 1.0]), "B": np.array([3.0, 3.0])})
