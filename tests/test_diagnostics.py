@@ -6,6 +6,7 @@ import pytest
 import torch as th
 from conftest import FAST, read_progress
 from stable_baselines3.common.logger import configure
+from torch.nn import functional as F
 
 from sb3_pevfa import PolicyRecord, PPOPeVFA
 from sb3_pevfa.diagnostics import (
@@ -16,9 +17,17 @@ from sb3_pevfa.diagnostics import (
     policy_embeddings,
     predict_policy_values,
     run_global_generalization,
+    zero_shot,
 )
-from sb3_pevfa.diagnostics.global_generalization import POLICY_LAYOUT, collect_returns, policy_actions
+from sb3_pevfa.diagnostics.global_generalization import (
+    POLICY_LAYOUT,
+    _PointWalkerPeVFA,
+    collect_returns,
+    policy_actions,
+    synthesize_policies,
+)
 from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS, monte_carlo_returns, read_scalars
+from sb3_pevfa.pevfa.representations import RawPolicyRepresentation
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -206,3 +215,86 @@ def test_embedding_maps_and_episode_returns_of_sacpevfa_snapshots(tmp_path):
     assert len(before) == 1 and model.history.record_info(last)["episode_return"] == pytest.approx(before[0])
     with pytest.raises(TypeError, match="Q\\(s, a, chi\\)"):
         predict_policy_values(model, model.policy, np.zeros((2, 3), np.float32))
+
+
+def test_collect_returns_discounts_by_gamma():
+    """Discounted by gamma per step (the default gamma=1 would hide a wrong power)."""
+    params = synthesize_policies(2, np.random.default_rng(0))
+    _, returns = collect_returns(params, n_trajectories=2, horizon=4, rng=np.random.default_rng(1), gamma=0.5)
+    _, undiscounted = collect_returns(params, n_trajectories=2, horizon=4, rng=np.random.default_rng(1), gamma=1.0)
+    rewards = undiscounted - np.concatenate([undiscounted[..., 1:], np.zeros_like(undiscounted[..., :1])], axis=-1)
+    expected = sum(0.5**t * rewards[..., t] for t in range(4))
+    np.testing.assert_allclose(returns[..., 0], expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(returns[..., 3], rewards[..., 3], rtol=1e-5, atol=1e-6)
+
+
+def test_global_generalization_by_hand():
+    """One epoch rebuilt by hand: the held-out policies' true values from their start states, the predictions of a
+    network trained on the other policies' samples (each with its own parameters), and their Spearman correlation."""
+    n, k, h, seed = 40, 3, 10, 0
+    (result,) = run_global_generalization(n_policies=n, n_trajectories=k, horizon=h, representations=("rpr",),
+                                          epochs=1, batch_size=64, seed=seed)  # fmt: skip
+    rng = np.random.default_rng(seed)
+    th.manual_seed(seed)
+    params = synthesize_policies(n, rng)
+    states, returns = collect_returns(params, k, h, rng)
+    order = rng.permutation(n)
+    train, test = order[:32], order[32:]
+    network = _PointWalkerPeVFA(RawPolicyRepresentation(POLICY_LAYOUT), POLICY_LAYOUT.n_params)
+    optimizer = th.optim.Adam(network.parameters(), lr=0.005)
+    x = th.as_tensor(states[train].reshape(-1, 6))
+    p = th.as_tensor(np.repeat(params[train], k * h, axis=0))
+    y = th.as_tensor(returns[train].reshape(-1))
+    for batch in th.randperm(len(x)).split(64):
+        loss = F.mse_loss(network(x[batch], p[batch]), y[batch])
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with th.no_grad():
+        predicted = network(th.as_tensor(states[test, :, 0].reshape(-1, 6)), th.as_tensor(np.repeat(params[test], k, axis=0)))
+    np.testing.assert_allclose(result.true_test_values, returns[test, :, 0].mean(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(result.predicted_test_values, predicted.reshape(8, k).mean(dim=1).numpy(), rtol=1e-4, atol=1e-5)
+    from scipy.stats import spearmanr
+
+    assert result.spearman == pytest.approx(spearmanr(result.true_test_values, result.predicted_test_values).statistic)
+
+
+def test_zero_shot_and_embedding_maps_restore_the_training_mode():
+    """A policy in evaluation mode stays in it after both diagnostics read it."""
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(192)
+    obs = np.zeros((2, 4), np.float32)
+    model.policy.set_training_mode(False)
+    predict_policy_values(model, model, obs)
+    assert not model.policy.training
+    policy_embeddings(model)
+    assert not model.policy.training
+
+
+def test_zero_shot_probe_of_an_empty_history_cycles_the_given_observations(monkeypatch):
+    """Without a history, SPR's probe states cycle through the given observations."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", representation="spr", **FAST)
+    probes, record_policy = [], zero_shot.record_policy
+    monkeypatch.setattr(
+        zero_shot, "record_policy", lambda pol, lay, probe, code: probes.append(probe) or record_policy(pol, lay, probe, code)
+    )
+    obs = np.arange(15, dtype=np.float32).reshape(5, 3)
+    predict_policy_values(model, model, obs)
+    n_pairs = model.policy.n_recorded_pairs
+    assert n_pairs > 5
+    np.testing.assert_array_equal(probes[0], obs[np.arange(n_pairs) % 5])
+
+
+def test_embedding_map_colours_and_minimum(tmp_path, monkeypatch):
+    """One panel coloured by each policy's episode return, the other by its id; fewer than 3 policies refused."""
+    with pytest.raises(ValueError, match="at least 3"):
+        policy_embeddings(PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(64))
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(640)
+    ids = np.array(model.history.policy_ids)
+    returns = np.array([model.history.record_info(int(i)).get("episode_return", np.nan) for i in ids], dtype=float)
+    figures, save = [], embedding_maps.save_figure
+    monkeypatch.setattr(embedding_maps, "save_figure", lambda fig, png: figures.append(fig) or save(fig, png))
+    embedding_maps.plot_embedding_maps(model, tmp_path / "m.png", methods=("pca",))
+    by_return, by_id = figures[0].axes[0], figures[0].axes[1]
+    known = np.isfinite(returns)
+    np.testing.assert_allclose(by_return.collections[0].get_array(), returns[known])
+    np.testing.assert_array_equal(by_id.collections[0].get_array(), ids)

@@ -138,3 +138,56 @@ def test_an_unchanged_actor_gets_a_record_per_rollout_when_targets_are_recompute
     model = PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", **kwargs).learn(256)
     assert model.history.n_policies == 5 and model.history.n_samples == 256
     assert model._refresh_history_targets() == 256  # the latest record (the final policy) has no samples
+
+
+def test_every_historical_policy_is_recomputed_with_its_own_chi_and_value_target_lambda():
+    """Each historical policy's targets: its own chi, value_target_lambda (not gae_lambda), and the time limit's
+    bootstrap in today's reward scale, by hand after the statistics moved."""
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1, seed=0))
+    model = PPOPeVFA("MlpPolicy", env, history_targets="recomputed", gae_lambda=0.8, value_target_lambda=1.0, **FAST)
+    model.learn(320)  # 5 rollouts of 64 steps: the 4th holds step 199, where the time limit cut the episode
+    history, policy = model.history, model.policy
+    all_rows = history._samples.get(np.arange(history.n_samples))
+    assert all_rows["raw_bootstraps"][199] != 0
+    env.obs_rms.mean += 0.3
+    env.ret_rms.var *= 4.0
+    rewards = env.normalize_reward(all_rows["raw_rewards"]) + all_rows["raw_bootstraps"] / np.sqrt(
+        env.ret_rms.var + env.epsilon
+    )
+    obs, _, ids = history.samples()
+    assert model._refresh_history_targets() == 320
+    _, targets, _ = history.samples()
+    policy.set_training_mode(False)
+    for policy_id in history.policy_ids[:-1]:
+        rows = ids == policy_id
+        last_obs = env.normalize_obs(history._bootstraps[policy_id]["obs"])
+        with th.no_grad():
+            chi = policy.embed(PolicyRecord.from_numpy(history.records([policy_id])))
+            values = policy.predict_values(th.as_tensor(obs[rows]), chi).numpy().reshape(64, 1)
+            last = policy.predict_values(th.as_tensor(last_obs), chi).numpy().reshape(1)
+        starts = all_rows["episode_starts"][rows].reshape(64, 1)
+        last_starts = history._bootstraps[policy_id]["last_episode_starts"]
+        returns = lambda_returns(rewards[rows].reshape(64, 1), values, starts, last, last_starts, model.gamma, 1.0)
+        np.testing.assert_allclose(targets[rows], returns.reshape(-1), rtol=1e-5, atol=1e-5, err_msg=str(policy_id))
+
+
+def test_refresh_keeps_the_latest_rollouts_targets_and_honours_its_period(monkeypatch):
+    """Every history_target_refresh-th iteration (the 2nd, 4th, ...), the historical rollouts only: the rollout being
+    trained on keeps its targets."""
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", history_targets="recomputed", history_target_refresh=2, **FAST)
+    refresh, calls = model._refresh_history_targets, []
+
+    def spy():
+        history = model.history
+        latest = history.latest_policy_id
+        _, before, ids = history.samples()
+        n = refresh()
+        _, after, _ = history.samples()
+        assert (ids == latest).sum() == 64  # the rollout being trained on
+        np.testing.assert_array_equal(after[ids == latest], before[ids == latest])
+        calls.append(n)
+        return n
+
+    monkeypatch.setattr(model, "_refresh_history_targets", spy)
+    model.learn(320)
+    assert calls == [0, 64, 0, 192, 0]  # iterations 2 and 4, the historical rollouts only
