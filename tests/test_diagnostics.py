@@ -260,14 +260,15 @@ def test_global_generalization_by_hand():
 
 
 def test_zero_shot_and_embedding_maps_restore_the_training_mode():
-    """A policy in evaluation mode stays in it after both diagnostics read it."""
+    """Both diagnostics read the policy in evaluation mode and leave it in the mode they found it in."""
     model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST).learn(192)
     obs = np.zeros((2, 4), np.float32)
-    model.policy.set_training_mode(False)
-    predict_policy_values(model, model, obs)
-    assert not model.policy.training
-    policy_embeddings(model)
-    assert not model.policy.training
+    for training in (False, True):
+        model.policy.set_training_mode(training)
+        predict_policy_values(model, model, obs)
+        assert model.policy.training is training
+        policy_embeddings(model)
+        assert model.policy.training is training
 
 
 def test_zero_shot_probe_of_an_empty_history_cycles_the_given_observations(monkeypatch):

@@ -74,6 +74,7 @@ NEEDS_EXTRA = [
     (["examples/local_generalization.py", "--tiny"], "diagnostics", "matplotlib"),
     (["examples/zero_shot_values.py", "--tiny"], "diagnostics", "scipy"),
     (["examples/off_policy.py", "--tiny"], "diagnostics", "scipy"),
+    (["examples/off_policy.py", "--tiny"], "mujoco", "mujoco"),  # its default env
     (["examples/optuna_search.py", "--tiny"], "zoo", "rl_zoo3"),
     (["-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
     (["-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "optuna"),

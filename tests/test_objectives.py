@@ -119,6 +119,17 @@ def test_opr_augmentation_masks_hidden_rows_at_the_mask_ratio_never_the_output_l
     assert th.equal(output, th.ones(6, layout.linear_shapes[-1][0]))
 
 
+def test_opr_augmentation_draws_its_mask_per_row():
+    layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=32, n_pairs=8)
+    representation = OriginPolicyRepresentation(layout, 8)
+    seen = _spy_on_encoder(representation)
+    th.manual_seed(0)
+    ContrastiveObjective(representation, batch_policies=2, mask_ratio=0.5)._encode(representation, data)
+    hidden = th.cat(seen[0][1][:-1], dim=1)  # 32 policies x 32 hidden rows
+    assert abs(hidden.mean().item() - 0.5) < 0.05  # of 1024 draws
+    assert (hidden.min(dim=1).values < hidden.max(dim=1).values).all()  # each policy keeps some rows, drops others
+
+
 def test_opr_noise_corrupts_a_noise_ratio_of_the_parameters_with_gaussian_noise_of_noise_std():
     layout, data = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=32, n_pairs=8)
     representation = OriginPolicyRepresentation(layout, 8)
@@ -148,7 +159,7 @@ def test_the_contrastive_key_is_the_momentum_encoders_and_each_policys_positive_
     assert all(parameter.grad is None for parameter in objective.key_encoder.parameters())
 
 
-def test_contrastive_defaults_are_algorithm_md_s():
+def test_contrastive_defaults_are_the_papers():  # docs/representations.md
     layout, _ = _synthetic_policies(gym.spaces.Box(-1, 1, (2,)), n_policies=1, n_pairs=8)
     opr, spr = (
         ContrastiveObjective(make_representation(name, layout, OBS, gym.spaces.Box(-1, 1, (2,)))) for name in ("opr", "spr")

@@ -406,9 +406,10 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
 def test_a_policy_name_it_does_not_take_is_refused_with_the_valid_ones(pevfa_class):
     """SB3's "Policy X unknown" names no choice, and SB3's advice for a Dict space (MultiInputPolicy) led here."""
     name = pevfa_class.__name__
-    with pytest.raises(ValueError, match=rf"'MultiInputPolicy' for {name} \(SB3's {name[:3]} takes it, for Dict obs"):
+    flatten = rf"'MultiInputPolicy' for {name} \(SB3's {name[:3]} takes it for Dict .*FlattenObservation\) and use MlpPolicy\)"
+    with pytest.raises(ValueError, match=flatten):
         pevfa_class("MultiInputPolicy", "Pendulum-v1")
-    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .*\), valid choices: \['MlpPolicy'\]$"
+    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .* MlpPolicy flattens images\), valid choices: \['MlpPolicy'\]$"
     with pytest.raises(ValueError, match=cnn):
         pevfa_class("CnnPolicy", "Pendulum-v1")
     with pytest.raises(ValueError, match=rf"^Unknown policy 'MlpPolicyy' for {name}, valid choices: \['MlpPolicy'\]$"):

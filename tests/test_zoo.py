@@ -470,36 +470,33 @@ OBJECTIVES = {"e2e": (), "cl": ("cl",), "aux": ("aux",), "cl+aux": ("cl", "aux")
 
 @pytest.mark.parametrize("space", ["full", "small"])
 @pytest.mark.parametrize("algo", ["ppo_pevfa", "a2c_pevfa"])
-def test_on_policy_samplers_reach_the_kwargs(space, algo):
+def test_on_policy_samplers_reach_the_kwargs(space, algo, monkeypatch):
     """What a trial samples reaches the model's arguments: a history of 2**pow samples larger than one rollout of all
     envs, the critic's learning rate (log scale), the objectives of OPR and SPR, the small space's fixed starts."""
     from sb3_pevfa.rl_zoo.hyperparams_opt import SAMPLERS, SEARCH_SPACE
 
-    SEARCH_SPACE["name"] = space
+    monkeypatch.setitem(SEARCH_SPACE, "name", space)
     n_envs, low = 16, (10 if space == "small" else 14)
-    try:
-        study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
-        for _ in range(40):
-            trial = study.ask()
-            sampled = SAMPLERS[algo](trial, 1, n_envs, {})
-            raw = trial.params
-            rollout = sampled["n_steps"] * n_envs
-            assert sampled["history_buffer_size"] == 2 ** raw["history_buffer_size_pow"]
-            pow_low = trial.distributions["history_buffer_size_pow"].low
-            if 2 ** trial.distributions["history_buffer_size_pow"].high > rollout:
-                assert 2**pow_low > rollout
-                assert sampled["history_buffer_size"] > rollout
-                assert pow_low == low or 2 ** (pow_low - 1) <= rollout  # the smallest history larger than a rollout
-            assert sampled["critic_learning_rate"] == raw["critic_learning_rate"]
-            assert trial.distributions["critic_learning_rate"].log
-            assert sampled["history_train_freq"] == raw["history_train_freq"]
-            assert ("objectives" in raw) == (raw["representation"] in ("opr", "spr"))
-            assert sampled["representation_objectives"] == OBJECTIVES[raw.get("objectives", "e2e")]
-            if space == "small":
-                assert sampled["history_learning_starts"] == 0
-                assert sampled["objective_kwargs"] == {o: {"learning_starts": 0} for o in sampled["representation_objectives"]}
-            else:
-                assert "history_learning_starts" not in sampled
-            study.tell(trial, 0.0)
-    finally:
-        SEARCH_SPACE["name"] = "full"
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(40):
+        trial = study.ask()
+        sampled = SAMPLERS[algo](trial, 1, n_envs, {})
+        raw = trial.params
+        rollout = sampled["n_steps"] * n_envs
+        assert sampled["history_buffer_size"] == 2 ** raw["history_buffer_size_pow"]
+        pow_low = trial.distributions["history_buffer_size_pow"].low
+        if 2 ** trial.distributions["history_buffer_size_pow"].high > rollout:
+            assert 2**pow_low > rollout
+            assert sampled["history_buffer_size"] > rollout
+            assert pow_low == low or 2 ** (pow_low - 1) <= rollout  # the smallest history larger than a rollout
+        assert sampled["critic_learning_rate"] == raw["critic_learning_rate"]
+        assert trial.distributions["critic_learning_rate"].log
+        assert sampled["history_train_freq"] == raw["history_train_freq"]
+        assert ("objectives" in raw) == (raw["representation"] in ("opr", "spr"))
+        assert sampled["representation_objectives"] == OBJECTIVES[raw.get("objectives", "e2e")]
+        if space == "small":
+            assert sampled["history_learning_starts"] == 0
+            assert sampled["objective_kwargs"] == {o: {"learning_starts": 0} for o in sampled["representation_objectives"]}
+        else:
+            assert "history_learning_starts" not in sampled
+        study.tell(trial, 0.0)

@@ -17,8 +17,12 @@ from sb3_pevfa.common.checks import check_argument_names, init_parameters
 
 #: The keyword arguments of SB3's ``load`` (``env``, ``device``, ``custom_objects``, ...)
 SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
-#: What SB3's other policy names are for, said where a PeVFA algorithm does not take one
-POLICY_PURPOSES = {"CnnPolicy": "image observations through a CNN", "MultiInputPolicy": "Dict observations"}
+#: What to use instead of an SB3 policy name a PeVFA algorithm does not take
+POLICY_ADVICE = {
+    "CnnPolicy": "for image observations through a CNN; {cls} has no CNN policy: MlpPolicy flattens images",
+    "MultiInputPolicy": "for Dict observations, which {cls} does not support: flatten them "
+    "(gymnasium.wrappers.FlattenObservation) and use MlpPolicy",
+}
 
 
 def sb3_algorithm(cls: type) -> str:
@@ -89,11 +93,10 @@ class ModelFile:
         """SB3's, whose ValueError names the valid choices and, for a name the SB3 algorithm takes, what it is for."""
         if policy_name in self.policy_aliases:  # type: ignore[attr-defined]
             return self.policy_aliases[policy_name]  # type: ignore[attr-defined]
-        base = next(klass for klass in type(self).__mro__ if klass.__name__ == sb3_algorithm(type(self)))
+        base = next(klass for klass in type(self).__mro__ if klass.__module__.startswith("stable_baselines3"))
         reason = ""
-        if policy_name in base.policy_aliases:
-            purpose = POLICY_PURPOSES.get(policy_name, "another policy")
-            reason = f" (SB3's {base.__name__} takes it, for {purpose}; {type(self).__name__} does not support them)"
+        if policy_name in base.policy_aliases and policy_name in POLICY_ADVICE:
+            reason = f" (SB3's {base.__name__} takes it {POLICY_ADVICE[policy_name].format(cls=type(self).__name__)})"
         valid = sorted(self.policy_aliases)  # type: ignore[attr-defined]
         raise ValueError(f"Unknown policy {policy_name!r} for {type(self).__name__}{reason}, valid choices: {valid}")
 
