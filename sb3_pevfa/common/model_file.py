@@ -25,9 +25,14 @@ POLICY_ADVICE = {
 }
 
 
+def sb3_base(cls: type) -> type:
+    """The SB3 algorithm class ``cls`` is based on (``PPO``, ``A2C``, ``SAC``, ``TD3``)."""
+    return next(klass for klass in cls.__mro__ if klass.__module__.startswith("stable_baselines3"))
+
+
 def sb3_algorithm(cls: type) -> str:
     """The name of the SB3 algorithm class ``cls`` is based on (``"PPO"``, ``"A2C"``, ``"SAC"``, ``"TD3"``)."""
-    return next(klass.__name__ for klass in cls.__mro__ if klass.__module__.startswith("stable_baselines3"))
+    return sb3_base(cls).__name__
 
 
 class ModelFile:
@@ -93,7 +98,7 @@ class ModelFile:
         """SB3's, whose ValueError names the valid choices and, for a name the SB3 algorithm takes, what it is for."""
         if policy_name in self.policy_aliases:  # type: ignore[attr-defined]
             return self.policy_aliases[policy_name]  # type: ignore[attr-defined]
-        base = next(klass for klass in type(self).__mro__ if klass.__module__.startswith("stable_baselines3"))
+        base = sb3_base(type(self))
         reason = ""
         if policy_name in base.policy_aliases and policy_name in POLICY_ADVICE:
             reason = f" (SB3's {base.__name__} takes it {POLICY_ADVICE[policy_name].format(cls=type(self).__name__)})"
