@@ -204,3 +204,26 @@ def test_every_result_file_is_cited_and_every_cited_result_exists():
     orphans = [str(pathlib.Path(file).relative_to(ROOT)) for file in files if not is_cited(file)]
     assert not orphans, "files under docs/results that no page names:\n" + "\n".join(orphans)
     assert expand_braces("a_{b,c}_{d,e}*") == ["a_b_d*", "a_b_e*", "a_c_d*", "a_c_e*"]
+
+
+def table_rows(text: str) -> dict[str, list[str]]:
+    """A Markdown text's table rows by their first cell, each cell stripped of a run count in brackets."""
+    rows = {}
+    for line in text.splitlines():
+        cells = [re.sub(r"\s*\(\d+\)$", "", cell.strip()) for cell in line.strip().strip("|").split("|")]
+        if line.startswith("|") and len(cells) > 1 and not set(cells[0]) <= set("-: "):
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_readme_results_table_is_the_report_s():
+    """The README's results table is the summary of the protocol whose curves it shows, cell for cell (the summary's
+    columns after the README's last one, the run counts and the other protocols' ratios, left out)."""
+    readme = (ROOT / "README.md").read_text()
+    folder = re.search(r"\]\((docs/results/[\w-]+)/curves\.png\)", readme).group(1)
+    summary = table_rows((ROOT / folder / "summary.md").read_text())
+    readme_rows = {task: cells for task, cells in table_rows(readme).items() if task.endswith(("-v3", "-v5"))}
+    assert len(readme_rows) == 6, readme_rows
+    for task, cells in readme_rows.items():
+        assert summary[task][: len(cells)] == cells, (task, cells, summary[task])
+    assert table_rows("| a | 1 ± 2 (5) | 3x |\n|---|---|---|\n") == {"a": ["1 ± 2", "3x"]}
