@@ -2,6 +2,7 @@
 
 import copy
 import inspect
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -492,3 +493,25 @@ def test_a_log_std_learning_rate_scale_other_than_one_has_its_group(scale):
     model = _model(algorithm="ppo", policy_kwargs=dict(log_std_lr_scale=scale))
     group = next(g for g in model.policy.optimizer.param_groups if g.get("name") == "log_std")
     assert group["params"] == [model.policy.log_std] and group["lr"] == pytest.approx(1e-4 * scale)
+
+
+def test_sb3_s_truncated_minibatch_warning_only_where_an_update_takes_minibatches_of_batch_size():
+    """SB3 warns when batch_size does not divide a rollout; the authors' protocol's critic splits its epochs evenly and
+    its actor takes the full batch, so no update takes minibatches of batch_size, and no such warning is given. An
+    actor minibatch of its own that leaves a truncated one is named; SB3's mechanics keep SB3's warning."""
+    env = make_vec_env("Pendulum-v1", n_envs=1, seed=0)
+
+    def warned(**overrides) -> list[str]:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            PPOPeVFA("MlpPolicy", env, **authors_protocol("ppo_pevfa", **overrides))
+        return [str(w.message) for w in caught if "minibatch" in str(w.message) or "mini-batch" in str(w.message)]
+
+    assert warned() == []  # n_steps 2000, batch_size 128: 15 minibatches and a rest of 80 in SB3's split
+    assert warned(critic_minibatches="sb3")[0].startswith("You have specified a mini-batch size of 128")
+    assert warned(actor_batch_size=None)[0].startswith("You have specified a mini-batch size of 128")
+    assert warned(actor_batch_size=300, rollout_episodes=None) == [
+        "actor_batch_size=300 leaves a truncated actor minibatch of 200 samples of each rollout of n_steps * n_envs = 2000"
+    ]
+    assert warned(actor_batch_size=500, rollout_episodes=None) == []
+    assert warned(actor_batch_size=300) == []  # the protocol's rollouts of 5 whole episodes vary in size

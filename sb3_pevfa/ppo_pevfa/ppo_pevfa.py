@@ -1,5 +1,6 @@
 """PPO with a Policy-extended Value Function Approximator (PPO-PeVFA, paper Algorithm 2)."""
 
+import warnings
 from typing import Any, ClassVar
 
 import torch as th
@@ -152,7 +153,11 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         _init_setup_model: bool = True,
     ):
         pevfa = {name: value for name, value in locals().items() if name in PEVFA_ARGUMENTS}
-        with action_space_errors_as_type_errors():
+        # no update takes minibatches of batch_size: SB3's warning of a truncated one would not be true
+        own_batches = critic_minibatches == "even" and actor_batch_size is not None
+        with action_space_errors_as_type_errors(), warnings.catch_warnings():
+            if own_batches:
+                warnings.filterwarnings("ignore", "You have specified a mini-batch size", UserWarning)
             super().__init__(
                 policy,
                 env,
@@ -184,6 +189,13 @@ class PPOPeVFA(PeVFAAlgorithm, PPO):
         self._init_pevfa(env, pevfa)
         self.actor_batch_size = actor_batch_size
         self._check_actor_batch_size()
+        rollout_size = self.n_steps * self.n_envs if self.env is not None and rollout_episodes is None else None
+        if own_batches and isinstance(actor_batch_size, int) and rollout_size and rollout_size % actor_batch_size:
+            warnings.warn(
+                f"actor_batch_size={actor_batch_size} leaves a truncated actor minibatch of "
+                f"{rollout_size % actor_batch_size} samples of each rollout of n_steps * n_envs = {rollout_size}",
+                stacklevel=2,
+            )
         if _init_setup_model:
             self._setup_model()
 
