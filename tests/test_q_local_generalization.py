@@ -177,6 +177,40 @@ def test_a_window_is_scored_on_the_transitions_whose_return_is_complete_enough(n
     np.testing.assert_allclose(result["pevfa_before"], np.mean(returns[:17, 0] ** 2), rtol=1e-6)
 
 
+def test_a_tail_weight_of_0_scores_the_transitions_whose_episode_terminated():
+    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    callback = QLocalGeneralizationCallback(tail_weight=0.0)
+    model.learn(110, callback=callback)
+    buffer, rows = model.replay_buffer, np.arange(40, 100)
+    buffer.dones[[60, 80]], buffer.timeouts[[60, 80]] = 1.0, [[0.0], [1.0]]  # terminated at row 60, truncated at 80
+    closed = {"start": 40, "first_row": callback._rows_added - 60, "policy_id": 0, "n_rows": 50, "timesteps": 110}
+    closed.update({key: np.zeros(50) for key in ERROR_KEYS})
+    callback._score(closed)
+    terminal = buffer.dones[rows] * (1 - buffer.timeouts[rows])
+    returns, _ = soft_monte_carlo_returns(buffer.rewards[rows], buffer.dones[rows], terminal, np.zeros((60, 1)), 0.99)
+    result = callback.results[-1]
+    assert result["n_states"] == 21  # rows 40-60, whose returns miss nothing
+    np.testing.assert_allclose(result["pevfa_before"], np.mean(returns[:21, 0] ** 2), rtol=1e-6)
+
+
+def test_a_window_is_scored_while_the_replay_buffer_holds_all_its_transitions():
+    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", buffer_size=100, **tiny())
+    callback = QLocalGeneralizationCallback()
+    model.learn(110, callback=callback)
+    results = callback.results
+
+    def closed(count: int) -> dict:  # a window of the latest ``count`` transitions
+        window = {"start": (model.replay_buffer.pos - count) % 100, "first_row": callback._rows_added - count}
+        return {**window, "policy_id": 0, "n_rows": 50, "timesteps": 110, **{key: np.zeros(50) for key in ERROR_KEYS}}
+
+    scored = len(results)
+    callback._score(closed(100))  # the whole buffer
+    assert len(results) == scored + 1
+    with pytest.warns(UserWarning, match=r"The replay buffer \(100 rows\) overwrote transitions of a window"):
+        callback._score(closed(101))  # its first transition overwritten
+    assert len(results) == scored + 1
+
+
 def test_the_entropy_bonus_of_each_replay_row_is_its_actions():
     env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
     model = SACPeVFA(  # nothing moves: the actor and alpha are those of every step

@@ -9,12 +9,27 @@ import torch as th
 from conftest import needs_denormal_flush
 from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.sac_pevfa import SACPeVFA
 from sb3_pevfa.td3_pevfa import TD3PeVFA
+
+
+class Normalized(BaseFeaturesExtractor):
+    """Pendulum's observations through a BatchNorm: a features extractor with parameters and running statistics."""
+
+    def __init__(self, observation_space):
+        super().__init__(observation_space, 3)
+        self.net = th.nn.Sequential(th.nn.Flatten(), th.nn.BatchNorm1d(3))
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return self.net(observations)
 
 
 def tiny(**policy_kwargs) -> dict:
@@ -109,6 +124,15 @@ def test_the_encoder_learns_from_the_live_critic_loss_only_where_asked():
         assert any(not th.equal(b, a) for b, a in zip(before, after)) == moved
 
 
+def test_a_shared_features_extractor_learns_nothing_from_the_critics_loss():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny(features_extractor_class=Normalized, share_features_extractor=True))
+    critic = model.policy.critic
+    assert critic.features_extractor is model.actor.features_extractor  # as SB3's critic: its features without gradient
+    sum(q.sum() for q in critic(th.randn(8, 3), th.rand(8, 1))).backward()
+    assert all(p.grad is None for p in critic.features_extractor.parameters())
+    assert all(p.grad is not None for p in critic.q_networks[0].parameters())
+
+
 def test_the_critic_head_adds_chi_as_a_bias_equal_to_the_concatenation():
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
     q_net = model.policy.critic.q_networks[0]
@@ -166,11 +190,15 @@ def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved(tmp
     model.learn(120)
     critic, target, observations = model.policy.critic, model.policy.critic_target, th.randn(8, 3)
     params, chi = critic.actor_record().params, critic.live_embedding(grad=False)
-    target_params = target.actor_record().params
+    target_params, target_chi = target.actor_record().params, target.live_embedding(grad=False)
     critic.optimizer.zero_grad()
     sum(q.sum() for q in critic(observations, th.zeros(8, 1))).backward()
     critic.optimizer.step()  # the encoder moved, the actor did not
+    polyak_update(critic.parameters(), target.parameters(), 0.5)  # SB3's, after the step: it moves no version counter
     assert critic.actor_record().params is params
+    fresh = target.representation(target.actor_record()).detach()  # the target's chi through its encoder as it is
+    th.testing.assert_close(target.live_embedding(grad=False), fresh, atol=0, rtol=0)
+    assert not th.equal(fresh, target_chi)
     moved = critic.live_embedding(grad=False)
     th.testing.assert_close(moved, critic.representation(critic.actor_record()).detach(), atol=0, rtol=0)
     assert not th.equal(moved, chi)
@@ -182,6 +210,8 @@ def test_the_flat_copy_of_the_actor_is_taken_again_only_when_the_actor_moved(tmp
         assert not th.equal(module.actor_record().params, before)
         th.testing.assert_close(module.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
     assert target.actor_record().params is critic.actor_record().params  # one copy per move, for both critics
+    actor.load_state_dict({name: value + 0.1 for name, value in actor.state_dict().items()})  # without its optimizer
+    th.testing.assert_close(critic.actor_record().params[0], critic.layout.flatten(model.policy), atol=0, rtol=0)
     model.save(tmp_path / "model.zip")
     loaded = SACPeVFA.load(tmp_path / "model.zip").policy
     for policy in (loaded, copy.deepcopy(loaded)):  # shared again
@@ -248,6 +278,7 @@ def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     for critic in (model.policy.critic, model.policy.critic_target):  # the target's values read the latest code too
         np.testing.assert_array_equal(critic.behaviour_codes.numpy(), latest_code)
     model.save(tmp_path / "model")
+    assert "history" not in load_from_zip_file(tmp_path / "model.zip")[0]  # the snapshots travel apart from the model
     model.save_history(tmp_path / "snapshots")
     loaded = SACPeVFA.load(tmp_path / "model", env=model.get_env())
     loaded.load_history(tmp_path / "snapshots")
@@ -257,27 +288,45 @@ def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     loaded.learn(40, reset_num_timesteps=False)
 
 
+@pytest.mark.parametrize(("representation", "field", "buffer"), [("random", "codes", "behaviour_codes"),
+                                                                ("spr", "states", "pair_states")])  # fmt: skip
+def test_loaded_snapshots_give_the_live_actor_the_latest_ones_code_and_states(tmp_path, representation, field, buffer):
+    kwargs = dict(representation=representation, n_state_action_pairs=8, snapshot_freq=10, history_train_freq=0)
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs, **tiny()).learn(130)
+    model.save_history(tmp_path / "snapshots")
+    other = SACPeVFA("MlpPolicy", "Pendulum-v1", **kwargs, **tiny())  # a model without snapshots of its own
+    other.num_timesteps = model.num_timesteps
+    other.load_history(tmp_path / "snapshots")
+    latest = model.history.records([model.history.latest_policy_id])[field][0]
+    assert other.history.policy_ids == model.history.policy_ids and np.abs(latest).sum() > 0
+    for critic in (other.policy.critic, other.policy.critic_target):
+        np.testing.assert_array_equal(getattr(critic, buffer).numpy(), latest)
+
+
 def test_the_target_critics_batch_norm_statistics_follow_the_snapshots_updates():
     """SB3 copies the critic's BatchNorm statistics to its target at each of its updates; the snapshots' updates move
-    them after SB3's last copy, so they copy them again."""
-    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-
-    class Normalized(BaseFeaturesExtractor):
-        def __init__(self, observation_space):
-            super().__init__(observation_space, 3)
-            self.net = th.nn.Sequential(th.nn.Flatten(), th.nn.BatchNorm1d(3))
-
-        def forward(self, observations: th.Tensor) -> th.Tensor:
-            return self.net(observations)
-
+    them after SB3's last copy, so they copy them again (the live ones to the target, not back); they read the actor's
+    features in evaluation mode, its statistics unmoved."""
     extractor = dict(features_extractor_class=Normalized, share_features_extractor=False)
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, history_train_freq=2, history_batch_size=32,
                      history_batch_policies=4, **tiny(**extractor))  # fmt: skip
     model.learn(150)
     statistics = [t.clone() for t in model.batch_norm_stats]
+    actor_norm, train, seen = model.actor.features_extractor.net[1], model._train_on_snapshots, []
+
+    def recorded() -> float:  # the actor's statistics before and after the update, the critic's after it
+        before = [t.clone() for t in actor_norm.buffers()]
+        loss = train()
+        seen.append((before, [t.clone() for t in actor_norm.buffers()], [t.clone() for t in model.batch_norm_stats]))
+        return loss
+
+    model._train_on_snapshots = recorded  # type: ignore[method-assign]
     model.train(gradient_steps=2, batch_size=32)  # SB3's two steps (each copying the statistics), one snapshots' update
     assert any(not th.equal(a, b) for a, b in zip(statistics, model.batch_norm_stats))
-    for live, target in zip(model.batch_norm_stats, model.batch_norm_stats_target):
+    ((actor_before, actor_after, moved),) = seen
+    assert all(th.equal(a, b) for a, b in zip(actor_before, actor_after)) and actor_norm.training  # its mode restored
+    for live, target, kept in zip(model.batch_norm_stats, model.batch_norm_stats_target, moved):
+        th.testing.assert_close(live, kept, rtol=0, atol=0)
         th.testing.assert_close(target, live, rtol=0, atol=0)
 
 
@@ -286,12 +335,22 @@ def test_the_snapshots_updates_train_the_critic_at_their_cadence():
                      history_batch_policies=4, history_learning_starts=150, **tiny())  # fmt: skip
     calls = []
     train = model._train_on_snapshots
-    model._train_on_snapshots = lambda: calls.append(1) or train()  # type: ignore[method-assign]
+    model._train_on_snapshots = lambda: calls.append(train()) or calls[-1]  # type: ignore[method-assign]
     model.learn(300)  # gradient steps from step 100; snapshot updates from step 150: 150 steps -> 30 updates
     assert len(calls) == 30 and model.logger.name_to_value["pevfa/n_history_updates"] == 30  # logged: so far
     before = copy.deepcopy(model.policy.critic.state_dict())
     loss = train()
     assert np.isfinite(loss) and any(not th.equal(v, model.policy.critic.state_dict()[k]) for k, v in before.items())
+    model.train(gradient_steps=10, batch_size=32)  # 1 + 10 steps of credit: two updates, their mean loss logged
+    assert len(calls) == 32 and calls[-1] != calls[-2]
+    assert model.logger.name_to_value["pevfa/history_value_loss"] == pytest.approx(np.mean(calls[-2:]), rel=1e-12)
+
+
+def test_the_snapshots_updates_start_at_the_env_step_history_learning_starts():
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", history_train_freq=1, history_batch_size=32, history_batch_policies=4,
+                     history_learning_starts=120, **tiny())  # fmt: skip
+    model.learn(120)  # 20 gradient steps (steps 101-120), the last one's at step 120
+    assert model._n_updates == 20 and model._n_history_updates == 1
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
@@ -432,7 +491,6 @@ def test_sb3s_positional_learning_rate_is_told_to_come_by_keyword(pevfa_class, b
 
 @pytest.mark.parametrize("representation", ["opr", "spr"])
 def test_several_envs_under_vecnormalize(representation):
-    from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=2, seed=0))
@@ -453,7 +511,6 @@ def test_several_envs_under_vecnormalize(representation):
 def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class, representation):
     """Model, replay buffer and snapshots saved, RNG states restored: learning on continues bit for bit (the envs
     seeded and reset at the resume in both runs, as SB3's load does)."""
-    from stable_baselines3.common.env_util import make_vec_env
 
     def make_env():
         return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
@@ -489,9 +546,16 @@ def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tm
 def test_spr_records_each_snapshots_deterministic_actions_at_replay_states(pevfa_class):
     model = pevfa_class("MlpPolicy", "Pendulum-v1", representation="spr", n_state_action_pairs=16, **tiny())
     model.learn(150)
+    critic = model.policy.critic
+    critic.actor_record()  # the live actor's actions at its latest snapshot's states, kept while nothing moves
+    model.record_snapshot()  # new states, the actor unmoved: its actions at them
+    with th.no_grad():
+        expected = model.policy._predict(critic.pair_states, deterministic=True)
+    th.testing.assert_close(critic.actor_record().actions[0], expected, atol=0, rtol=0)
     snapshot, records, _, _ = snapshot_then_move_on(model)
     states = records.states[0]
     assert states.shape == (16, 3) and th.equal(model.policy.critic.pair_states, states)  # the live actor's states
+    assert th.equal(model.policy.critic_target.pair_states, states)  # its target's too
     with th.no_grad():
         expected = snapshot(states, deterministic=True) if pevfa_class is SACPeVFA else snapshot(states)
     th.testing.assert_close(records.actions[0], expected, atol=1e-6, rtol=0)
@@ -500,13 +564,17 @@ def test_spr_records_each_snapshots_deterministic_actions_at_replay_states(pevfa
     assert not th.allclose(live.actions[0], expected, atol=1e-3)
 
 
+@pytest.mark.parametrize(("n_envs", "buffer_size", "stored"), [(1, 1_000_000, 101), (1, 100, 100), (2, 1_000_000, 51)])
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
-def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay_buffer(pevfa_class):
-    model = pevfa_class("MlpPolicy", "Pendulum-v1", representation="fingerprint", **tiny())
-    model.learn(101)  # one gradient step: the first snapshot set the probes, 32 evenly spaced of 101 stored steps
+def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay_buffer(
+    pevfa_class, n_envs, buffer_size, stored
+):
+    env = make_vec_env("Pendulum-v1", n_envs=n_envs, seed=0)
+    model = pevfa_class("MlpPolicy", env, representation="fingerprint", buffer_size=buffer_size, **tiny())
+    model.learn(101)  # one gradient step: the first snapshot set the probes, 32 evenly spaced of the rows stored
     representation = model.policy.critic.representation
-    rows = np.arange(32) * 101 // 32
-    expected = th.as_tensor(model.replay_buffer.observations[rows, 0])
+    rows = np.arange(32) * stored // 32  # a full buffer (100 rows, wrapped once): all its rows; env row % n_envs
+    expected = th.as_tensor(model.replay_buffer.observations[rows, rows % n_envs])
     assert bool(representation.probes_set) and th.equal(model.policy.critic_target.representation.probes, expected)
     snapshot, records, _, _ = snapshot_then_move_on(model)
     probes = representation.probes.detach()
