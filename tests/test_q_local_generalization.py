@@ -275,6 +275,8 @@ def test_windows_without_a_scored_transition_are_said_once():
         model.learn(600, callback=callback)
     assert sum("No transition of a window" in str(w.message) for w in caught) == 1
     assert callback.results and all(r["n_states"] == 0 and np.isnan(r["pevfa_before"]) for r in callback.results)
+    with pytest.warns(UserWarning, match=r"of its discounted value \(its episode terminated\)\. Episodes"):
+        model.learn(300, callback=QLocalGeneralizationCallback(tail_weight=0.0))  # only a terminated episode's
     scored = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=100, gamma=0.9, **tiny())  # 44 steps suffice
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)

@@ -242,11 +242,12 @@ class QLocalGeneralizationCallback(BaseCallback):
         errors = {key: float(np.mean((closed[key][scored] - target) ** 2)) if scored.any() else np.nan for key in ERROR_KEYS}
         if not scored.any() and not self._warned_unscored:
             self._warned_unscored = True
-            steps = int(np.ceil(np.log(self.tail_weight) / np.log(model.gamma))) if self.tail_weight > 0 else "all"
+            steps = int(np.ceil(np.log(self.tail_weight) / np.log(model.gamma))) if self.tail_weight > 0 else 0
+            went_on = f", or went on {steps} steps after it" if steps else ""
             warnings.warn(
                 f"No transition of a window ({closed['n_rows']} rows) is scored: none has a return that misses at most "
-                f"tail_weight={self.tail_weight} of its discounted value (its episode terminated, or went on {steps} "
-                "steps after it). Episodes that end at a shorter time limit are never scored: use an env whose episodes "
+                f"tail_weight={self.tail_weight} of its discounted value (its episode terminated{went_on}). Episodes "
+                "that end at a shorter time limit are never scored: use an env whose episodes "
                 "terminate, a longer time limit, a lower gamma or a larger tail_weight",
                 stacklevel=2,
             )
