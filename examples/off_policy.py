@@ -8,14 +8,13 @@ python examples/off_policy.py --tiny               # seconds (CI)
 Needs the diagnostics extra, and for the default env the mujoco one: pip install -e ".[diagnostics,mujoco]"
 """
 
-from sb3_pevfa.extras import exit_without_extra
+from sb3_pevfa.extras import exit_without_env_extra, exit_without_extra
 
 exit_without_extra("diagnostics", "examples/off_policy.py")
 
 import argparse
 import pathlib
 
-import gymnasium as gym
 import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 
@@ -35,8 +34,7 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/off_policy"))
     parser.add_argument("--tiny", action="store_true", help="2 x 600 steps, small networks (a smoke test)")
     args = parser.parse_args()
-    if str(gym.spec(args.env).entry_point).startswith("gymnasium.envs.mujoco"):
-        exit_without_extra("mujoco", f"examples/off_policy.py --env {args.env}")
+    exit_without_env_extra(args.env, f"examples/off_policy.py --env {args.env}")
     th.set_num_threads(1)  # one thread is faster for small networks on CPU
     algorithm = ALGORITHMS[args.algo]
     small = dict(learning_starts=200, batch_size=32, snapshot_freq=100, policy_kwargs=dict(net_arch=[32, 32]))

@@ -12,6 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_pevfa import REPRESENTATIONS, PPOPeVFA
+from sb3_pevfa.extras import exit_without_env_extra
 
 
 def main() -> None:
@@ -23,6 +24,7 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/example"))
     parser.add_argument("--tiny", action="store_true", help="1k steps in 256-step rollouts (a smoke test)")
     args = parser.parse_args()
+    exit_without_env_extra(args.env, f"examples/train_pevfa.py --env {args.env}")
     th.set_num_threads(1)
     kwargs = {}
     if args.tiny:

@@ -12,6 +12,8 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "mujoco": ("mujoco",),
     "box2d": ("Box2D",),
 }
+#: Gymnasium's env packages -> the extra their envs need
+ENV_EXTRAS = {"gymnasium.envs.mujoco": "mujoco", "gymnasium.envs.box2d": "box2d"}
 
 
 def _installed(module: str) -> bool:
@@ -50,3 +52,13 @@ def exit_without_extra(extra: str, what: str) -> None:
     message = missing_extra(extra, what)
     if message is not None:
         sys.exit(message)
+
+
+def exit_without_env_extra(env_id: str, what: str) -> None:
+    """For scripts: :func:`exit_without_extra` for the extra that Gymnasium's ``env_id`` needs (MuJoCo, Box2D), if any."""
+    import gymnasium
+
+    entry_point = str(gymnasium.spec(env_id).entry_point)
+    for package, extra in ENV_EXTRAS.items():
+        if entry_point.startswith(package + "."):
+            exit_without_extra(extra, what)

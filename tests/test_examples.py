@@ -75,6 +75,8 @@ NEEDS_EXTRA = [
     (["examples/zero_shot_values.py", "--tiny"], "diagnostics", "scipy"),
     (["examples/off_policy.py", "--tiny"], "diagnostics", "scipy"),
     (["examples/off_policy.py", "--tiny"], "mujoco", "mujoco"),  # its default env
+    (["examples/train_pevfa.py", "--tiny", "--env", "Hopper-v5"], "mujoco", "mujoco"),
+    (["examples/train_pevfa.py", "--tiny", "--env", "LunarLanderContinuous-v3"], "box2d", "Box2D"),
     (["examples/optuna_search.py", "--tiny"], "zoo", "rl_zoo3"),
     (["-m", "sb3_pevfa.train", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "rl_zoo3"),
     (["-m", "sb3_pevfa.enjoy", "--algo", "ppo_pevfa", "--env", "CartPole-v1"], "zoo", "optuna"),
