@@ -48,11 +48,14 @@ def main() -> None:
     model.learn(timesteps, callback=diagnostic)
     model.save(args.out / "model")
     model.save_replay_buffer(args.out / "replay_buffer")  # the snapshots beside it: replay_buffer.snapshots.npz
+    th.save(diagnostic.state_dict(), args.out / "diagnostic.pt")  # its conventional critic and its results
 
     # the same env without a reset, the RNG states, the buffer and the snapshots: learning goes on as if never stopped
     model = algorithm.load(args.out / "model", env=model.get_env(), force_reset=False, restore_rng_state=True)
     model.load_replay_buffer(args.out / "replay_buffer")
-    model.learn(timesteps, reset_num_timesteps=False)
+    diagnostic = QLocalGeneralizationCallback()  # goes on with the conventional critic (its windows from the next snapshot)
+    diagnostic.load_state_dict(th.load(args.out / "diagnostic.pt"))
+    model.learn(timesteps, callback=diagnostic, reset_num_timesteps=False)
     mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=3 if args.tiny else 10)
     print(f"{args.env}, {args.algo}: {model.num_timesteps} steps, {model.history.n_policies} snapshots, "
           f"return {mean:.1f} +- {std:.1f}")  # fmt: skip

@@ -839,10 +839,12 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
     np.testing.assert_allclose(figures.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
-    # a run that went on from a checkpoint restarted its conventional critic: left out of the diagnostic
+    # a run that went on from a checkpoint went on with its conventional critic: in the diagnostic; one without a
+    # scored iteration is not
     resumed = {"local_generalization": other, "resumed_from": 2000}
-    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed]}})
-    assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]
+    empty = {"local_generalization": {}}
+    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed, empty]}})
+    assert rows[2:] == ["| A | x | 2 | 7 | 2.57 / 1.57 (2.00) | 29% | 1 / 1.86 |"]  # 18/7, 11/7; 2 of 7; 13/7
 
 
 def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
@@ -1155,16 +1157,41 @@ def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
     assert all(min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after"))
 
 
-def test_a_diagnostic_trial_never_goes_on_from_a_checkpoint(tmp_path, monkeypatch):
-    """The diagnostic's conventional critic and its series live in the process (a resumed run would be left out of
-    the diagnostic): an interrupted diagnostic run saves no checkpoint and starts over, whatever the folder holds."""
+def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_series(tmp_path, monkeypatch):
+    """The checkpoint holds the diagnostic's conventional critic and the windows scored so far: the resumed run's series
+    is the uninterrupted run's up to the checkpoint, then the windows opened after it (the open ones are lost)."""
+    from stable_baselines3.common.env_util import make_vec_env
+
     use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
-    tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1000, 500, 1)
-    stop_once_at(monkeypatch, 1000, tmp_path / "stopped")
+    tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 1)
+    whole = training.train(tiny, TASK, "opr+local-generalization", 0)["local_generalization"]
+    stop_once_at(monkeypatch, 1500, tmp_path / "stopped")
     folder = tmp_path / "checkpoint"
     with pytest.raises(KeyboardInterrupt):
-        training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=500)
+        training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=1000)
+    saved = torch.load(folder / "diagnostic.pt")
+    assert saved["timesteps"] == 1000 and [r["policy_id"] for r in saved["results"]] == [0]
+    torch.save({**saved, "timesteps": 500}, folder / "diagnostic.pt")  # another checkpoint's: the run starts over
+    assert training.load_checkpoint(folder, "sac", "opr+local-generalization", make_vec_env(TASK)) is None
+    torch.save(saved, folder / "diagnostic.pt")
+    result = training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=1000)
+    assert result["resumed_from"] == 1000 and result["curve"]["steps"] == [500, 1000, 1500]
+    series = result["local_generalization"]
+    assert whole["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0] and series["policy_id"] == [0.0, 3.0, 4.0]
+    assert {key: values[0] for key, values in series.items()} == {key: values[0] for key, values in whole.items()}
+    assert series["pevfa_before"][1:] != whole["pevfa_before"][3:]  # after it: another run (its env began anew)
     assert not folder.exists()
-    result = training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=500)
-    assert result["resumed_from"] == 0 and result["curve"]["steps"] == [500, 1000]
-    assert result["local_generalization"]["policy_id"][0] == 0.0  # the series from the run's first snapshot
+
+
+def test_an_on_policy_diagnostic_logs_the_last_iteration_before_its_checkpoint(tmp_path, monkeypatch):
+    """The diagnostic's hooks run before the checkpoint's: the iteration that ends at the checkpoint is in it."""
+    tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 1)
+    whole = training.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
+    stop_once_at(monkeypatch, 6000, tmp_path / "stopped")
+    folder = tmp_path / "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        training.train(tiny, TASK, "opr-e2e+local-generalization", 0, checkpoint=folder, checkpoint_freq=2000)
+    result = training.train(tiny, TASK, "opr-e2e+local-generalization", 0, checkpoint=folder, checkpoint_freq=2000)
+    series = result["local_generalization"]
+    assert result["resumed_from"] == 4000 and series["timesteps"] == whole["timesteps"] == [2000.0, 4000.0, 6000.0]
+    assert {key: values[:2] for key, values in series.items()} == {key: values[:2] for key, values in whole.items()}

@@ -299,3 +299,54 @@ def test_embedding_map_colours_and_minimum(tmp_path, monkeypatch):
     known = np.isfinite(returns)
     np.testing.assert_allclose(by_return.collections[0].get_array(), returns[known])
     np.testing.assert_array_equal(by_id.collections[0].get_array(), ids)
+
+
+def _go_on(callback_class, model_class, env: str, first: int, then: int, split: bool, **kwargs):
+    """A run of ``first`` then ``then`` steps with the diagnostic: the same callback, or (``split``) a new one loaded
+    with its ``state_dict`` between the two learn calls."""
+    model = model_class("MlpPolicy", env, **{"seed": 0, **kwargs})
+    callback = callback_class()
+    model.learn(first, callback=callback)
+    if split:
+        state = callback.state_dict()
+        callback.results.append({"not": "saved"})  # the state is a copy: what the callback does next is not in it
+        for parameter in callback.critic.parameters():
+            parameter.data.add_(1.0)
+        callback = callback_class()
+        callback.load_state_dict(state)
+    model.learn(then, callback=callback, reset_num_timesteps=False)
+    return callback
+
+
+@pytest.mark.parametrize("kind", ["v", "q"])
+def test_a_diagnostic_goes_on_from_its_state_as_if_never_stopped(kind):
+    """A new callback loaded with another's state carries on its conventional critic, optimizer and results, and
+    draws no random numbers doing it: the run goes on as with the same callback, to the bit."""
+    from sb3_pevfa import TD3PeVFA
+    from sb3_pevfa.diagnostics import QLocalGeneralizationCallback
+
+    if kind == "v":
+        runs = [_go_on(LocalGeneralizationCallback, PPOPeVFA, "CartPole-v1", 192, 128, split, **FAST) for split in (0, 1)]
+    else:
+        options = dict(snapshot_freq=100, gamma=0.9, learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32]))
+        runs = [_go_on(QLocalGeneralizationCallback, TD3PeVFA, "Pendulum-v1", 450, 450, split, **options)
+                for split in (0, 1)]  # fmt: skip
+    same, loaded = runs
+    assert len(same.results) > 3 and loaded.results == same.results
+    for name in loaded.saved_attributes[:-1]:  # the critics (the optimizers' states follow from them)
+        for ours, theirs in zip(getattr(loaded, name).state_dict().values(), getattr(same, name).state_dict().values()):
+            assert th.equal(ours, theirs)
+
+
+def test_a_diagnostic_state_is_checked():
+    callback = LocalGeneralizationCallback()
+    with pytest.raises(RuntimeError, match="no state before its first learn"):
+        callback.state_dict()
+    with pytest.raises(ValueError, match="needs optimizer, results; got critic"):
+        callback.load_state_dict({"critic": {}})
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST)
+    model.learn(64, callback=callback)
+    wider = LocalGeneralizationCallback(net_arch=(32,))
+    wider.load_state_dict(callback.state_dict())
+    with pytest.raises(RuntimeError, match="size mismatch"):  # torch's: the critic is not the one saved
+        model.learn(64, callback=wider, reset_num_timesteps=False)

@@ -17,7 +17,7 @@ OUTPUTS = {
     "embedding_maps.py": "*.png",
     "zero_shot_values.py": "*.png",
     "quickstart.py": "history.npz",
-    "off_policy.py": "replay_buffer.snapshots.npz",
+    "off_policy.py": "diagnostic.pt",
     "train_pevfa.py": "model.zip",
     "custom_representation.py": "*/progress.csv",
     "zoo_commands.sh": "plots/*.png",

@@ -355,15 +355,15 @@ def compact(runs: Runs, baseline: str, variant: str, other: Runs | None = None, 
 
 
 def diagnosed(variant_runs: list[dict[str, Any]]) -> list[dict[str, list[float]]]:
-    """The diagnostic's series of the runs that kept it from start to end: a run that went on from a checkpoint
-    started a new conventional critic there (the callback is not checkpointed), so it is left out."""
-    return [r["local_generalization"] for r in variant_runs if "local_generalization" in r and not r.get("resumed_from")]
+    """The diagnostic's series of the runs that have one (a run that went on from a checkpoint went on with its
+    conventional critic: its series lacks only what was not scored when the checkpoint was taken)."""
+    return [r["local_generalization"] for r in variant_runs if r.get("local_generalization")]
 
 
 def local_generalization(runs: Runs) -> list[str]:
     """Per task and variant with the diagnostic: the PeVFA's and the conventional critic's errors against the
     Monte-Carlo returns of each new policy before and after the iteration's critic update (paper Fig. 3b / 8), over
-    the runs of ``_diagnosed``."""
+    the runs of ``diagnosed``."""
     lines = ["| task | variant | runs | iterations | error before update, PeVFA / VFA (median ratio) | PeVFA closer before "
              "| error after update, PeVFA / VFA |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     for task, by_variant in runs.items():

@@ -29,12 +29,11 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.logger import KVWriter, Logger
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_pevfa import PPOPeVFA
-from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback
+from sb3_pevfa.diagnostics.local_generalization import LocalGeneralizationCallback, ResumableDiagnostic
 from sb3_pevfa.diagnostics.q_local_generalization import QLocalGeneralizationCallback
 
 from . import zoo
@@ -51,8 +50,9 @@ class CurveCallback(BaseCallback):
     """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` episodes (SB3's ``evaluate_policy``;
     deterministic actions unless ``deterministic=False``), records the training's CPU and wall-clock seconds so far
     (evaluations and checkpoints apart), and reports the mean return to the Optuna trial, with a heartbeat. With a
-    ``checkpoint`` folder, it saves the model, its history and its own state there at the first iteration boundary
-    after every ``checkpoint_freq`` env steps; ``state`` is such a saved state, to go on from."""
+    ``checkpoint`` folder, it saves the model, its history, the ``diagnostic``'s state (if any) and its own state
+    there at the first iteration boundary after every ``checkpoint_freq`` env steps; ``state`` is such a saved state,
+    to go on from."""
 
     def __init__(
         self,
@@ -64,9 +64,10 @@ class CurveCallback(BaseCallback):
         checkpoint_freq: int = 0,
         state: dict[str, Any] | None = None,
         deterministic: bool = True,
+        diagnostic: ResumableDiagnostic | None = None,
     ):
         super().__init__()
-        self.deterministic = deterministic
+        self.deterministic, self.diagnostic = deterministic, diagnostic
         self.eval_env, self.trial, self.eval_freq, self.n_eval_episodes = eval_env, trial, eval_freq, n_eval_episodes
         self.checkpoint, self.checkpoint_freq = checkpoint, checkpoint_freq
         state = state or {}
@@ -119,7 +120,7 @@ class CurveCallback(BaseCallback):
         if self.checkpoint is None or not self.checkpoint_freq or self.num_timesteps < self.next_checkpoint:
             return
         with self.apart():
-            save_checkpoint(self.checkpoint, self.model, self.state())
+            save_checkpoint(self.checkpoint, self.model, self.state(), self.diagnostic)
         self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
 
     def state(self) -> dict[str, Any]:
@@ -128,10 +129,15 @@ class CurveCallback(BaseCallback):
                 "eval_cpu": self.eval_cpu, "eval_wall": self.eval_wall}  # fmt: skip
 
 
-def save_checkpoint(folder: pathlib.Path, model: PPO, state: dict[str, Any]) -> None:
-    """The model, its history and ``state``, each file replaced whole (a kill leaves the previous one or the new one;
-    the state, written last, names the steps the model must have)."""
+def save_checkpoint(
+    folder: pathlib.Path, model: PPO, state: dict[str, Any], diagnostic: ResumableDiagnostic | None = None
+) -> None:
+    """The model, its history, the diagnostic's state and ``state``, each file replaced whole (a kill leaves the
+    previous one or the new one; the state, written last, names the steps the model and the diagnostic must have)."""
     folder.mkdir(parents=True, exist_ok=True)
+    if diagnostic is not None:
+        th.save({**diagnostic.state_dict(), "timesteps": model.num_timesteps}, folder / "diagnostic.tmp.pt")
+        os.replace(folder / "diagnostic.tmp.pt", folder / "diagnostic.pt")
     model.save(folder / "model.tmp.zip")
     os.replace(folder / "model.tmp.zip", folder / "model.zip")
     if hasattr(model, "save_history"):  # a PeVFA: its policy history or snapshots
@@ -146,10 +152,17 @@ def save_checkpoint(folder: pathlib.Path, model: PPO, state: dict[str, Any]) -> 
 
 
 def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
-    """The model and state saved in ``folder``, or None where there is none or its files do not belong together."""
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together. A
+    diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
     if folder is None or not (folder / "state.json").exists():
         return None
     state = json.loads((folder / "state.json").read_text())
+    if variant in LOCAL_GENERALIZATION:
+        if not (folder / "diagnostic.pt").exists():
+            return None
+        state["diagnostic"] = th.load(folder / "diagnostic.pt")
+        if state["diagnostic"].pop("timesteps") != state["timesteps"]:
+            return None
     model = algorithm_of(protocol, variant).load(folder / "model.zip", env=env)
     if hasattr(model, "load_history"):
         model.load_history(folder / "history.npz")
@@ -177,32 +190,29 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
           checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ) -> dict[str, Any]:  # fmt: skip
     """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
     goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
-    env steps; the folder is removed when the run is complete. Runs with a diagnostic (``LOCAL_GENERALIZATION``)
-    neither save nor load checkpoints: an interrupted one starts over."""
+    env steps; the folder is removed when the run is complete. A run with a diagnostic (``LOCAL_GENERALIZATION``)
+    goes on with its conventional critic and its series (what was not scored when the checkpoint was taken is not)."""
     if campaign.protocol == "zoo":
         return train_through_the_zoo(campaign, task, variant, seed, trial)
     th.set_num_threads(1)
     make_env = ENV_MAKERS.get(campaign.protocol, functools.partial(make_vec_env, n_envs=1))
     env = make_env(task, seed=seed)
     eval_env = make_env(task, seed=seed + EVAL_SEED_OFFSET)
-    if variant in LOCAL_GENERALIZATION:  # its diagnostic's critic and series live in the process: never resumed (a
-        if checkpoint is not None:  # report would leave the run out of the diagnostic), an interrupted run starts over
-            shutil.rmtree(checkpoint, ignore_errors=True)  # (one saved by an earlier version goes too)
-        checkpoint = None
     with warnings.catch_warnings():  # the paper's 2000-step rollouts in minibatches of 128 (the last one of 80)
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)
         model, state = resumed or (make_model(campaign.protocol, variant, env, seed), {})
     deterministic = campaign.protocol not in STOCHASTIC_EVALUATION
-    callback = CurveCallback(
-        eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq, state, deterministic
-    )
-    callbacks: list[BaseCallback] = [callback]
-    logged = MemoryOutput()
+    diagnostic = None
     if variant in LOCAL_GENERALIZATION:
-        model.set_logger(Logger(folder=None, output_formats=[logged]))
-        diagnostic = QLocalGeneralizationCallback if campaign.protocol in OFF_POLICY else LocalGeneralizationCallback
-        callbacks.append(diagnostic(**LOCAL_GENERALIZATION[variant]))
+        kind = QLocalGeneralizationCallback if campaign.protocol in OFF_POLICY else LocalGeneralizationCallback
+        diagnostic = kind(**LOCAL_GENERALIZATION[variant])
+        if "diagnostic" in state:
+            diagnostic.load_state_dict(state.pop("diagnostic"))
+    callback = CurveCallback(eval_env, trial, campaign.eval_freq, campaign.eval_episodes, checkpoint, checkpoint_freq,
+                             state, deterministic, diagnostic)  # fmt: skip
+    # the diagnostic's hooks first: at an iteration's start it logs the last one before the checkpoint is saved
+    callbacks = [callback] if diagnostic is None else [diagnostic, callback]
     model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
     cpu, wall = callback.training_time()
     curve = callback.curve
@@ -223,7 +233,7 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         "steps_per_wall_second": model.num_timesteps / wall,
         "arguments": resolved_arguments(model),
         "resumed_from": state.get("timesteps", 0),
-        **({"local_generalization": logged.series("pevfa/local_gen/")} if variant in LOCAL_GENERALIZATION else {}),
+        **({"local_generalization": series(diagnostic.results)} if diagnostic is not None else {}),
         **provenance(),
     }
 
@@ -268,20 +278,9 @@ def train_through_the_zoo(
     }
 
 
-class MemoryOutput(KVWriter):
-    """An SB3 logger output that keeps every dumped row in memory."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, Any]] = []
-
-    def write(self, key_values: dict[str, Any], key_excluded: dict[str, Any], step: int = 0) -> None:
-        self.rows.append(dict(key_values))
-
-    def series(self, prefix: str) -> dict[str, list[float]]:
-        """The keys under ``prefix`` (prefix removed), over the rows that log them."""
-        rows = [row for row in self.rows if any(key.startswith(prefix) for key in row)]
-        keys = sorted({key for row in rows for key in row if key.startswith(prefix)})
-        return {key[len(prefix) :]: [float(row.get(key, np.nan)) for row in rows] for key in keys}
+def series(results: list[dict[str, float]]) -> dict[str, list[float]]:
+    """A diagnostic's results (one entry per iteration or window) as a series per key."""
+    return {key: [float(entry[key]) for entry in results] for key in sorted(results[0])} if results else {}
 
 
 def resolved_arguments(model: PPO) -> dict[str, str]:

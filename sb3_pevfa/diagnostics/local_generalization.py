@@ -1,8 +1,11 @@
 """Local generalization (paper Sec. 3.2, Fig. 3b / 8, App. B.2): is V(s, chi_{pi_t}) closer to pi_t's returns than
 a conventional V(s), before and after the iteration's critic update?"""
 
+import copy
 import csv
 import pathlib
+import weakref
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -36,7 +39,60 @@ def monte_carlo_returns(rewards: np.ndarray, episode_starts: np.ndarray, last_do
     return returns, complete
 
 
-class LocalGeneralizationCallback(BaseCallback):
+class ResumableDiagnostic(BaseCallback):
+    """A diagnostic whose conventional critic and results can be saved beside a model's checkpoint and go on in the
+    run that resumes it: ``state_dict()``, then ``load_state_dict(state)`` on a new callback before its ``learn``.
+    What was not scored when the state was taken (a rollout's or a window's pending errors) is not kept. Loading
+    draws no random numbers: the critic it replaces is built under a forked generator."""
+
+    #: The attributes saved by ``state_dict`` (modules and optimizers), besides ``results``
+    saved_attributes: tuple[str, ...] = ("critic", "optimizer")
+
+    def __init__(self, verbose: int = 0):
+        super().__init__(verbose)
+        #: One entry per scored iteration (or window): the four errors, ``timesteps`` and ``n_states``
+        self.results: list[dict[str, float]] = []
+        self._saved: dict[str, Any] | None = None
+
+    def _build_critic(self) -> None:
+        """The conventional critic and its optimizer (as ``saved_attributes`` names them)."""
+        raise NotImplementedError
+
+    def _init_callback(self) -> None:
+        if getattr(self, "_model", lambda: None)() is self.model:
+            return  # another learn() of the same run: its conventional critic goes on
+        self._model = weakref.ref(self.model)
+        if self._saved is None:
+            self._build_critic()
+            return
+        with th.random.fork_rng(devices=[]):  # its weights are replaced: the run's random numbers stay the run's
+            self._build_critic()
+        self._restore()
+
+    def state_dict(self) -> dict[str, Any]:
+        """The conventional critic's state, its optimizer's and the results so far (copies)."""
+        if not hasattr(self, "critic"):
+            raise RuntimeError(f"{type(self).__name__} has no state before its first learn()")
+        state = {name: copy.deepcopy(getattr(self, name).state_dict()) for name in self.saved_attributes}
+        return {**state, "results": copy.deepcopy(self.results)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Go on from ``state`` (``state_dict()``'s): at once if the critic exists, else when ``learn`` starts."""
+        missing = sorted({*self.saved_attributes, "results"} - set(state))
+        if missing:
+            raise ValueError(f"{type(self).__name__}'s state needs {', '.join(missing)}; got {', '.join(sorted(state))}")
+        self._saved = state
+        if hasattr(self, "critic"):
+            self._restore()
+
+    def _restore(self) -> None:
+        state, self._saved = self._saved, None
+        for name in self.saved_attributes:
+            getattr(self, name).load_state_dict(state[name])
+        self.results = copy.deepcopy(state["results"])
+
+
+class LocalGeneralizationCallback(ResumableDiagnostic):
     """Trains a conventional critic V(s) beside a PPOPeVFA run on the same on-policy data and value targets (it never
     feeds the advantages) and logs, at every iteration, the mean squared error of V(s, chi_{pi_t}) and of V(s) against
     the Monte-Carlo returns pi_t actually collected, before and after that iteration's critic update:
@@ -44,6 +100,8 @@ class LocalGeneralizationCallback(BaseCallback):
 
     The four errors of iteration t are logged together when iteration t+1 starts (the "after" of the PeVFA needs
     the update), so they appear one log row later; ``pevfa/local_gen/timesteps`` says which rollout they belong to.
+    ``results`` keeps them too, one entry per iteration. A later ``learn`` of the same model goes on with the same
+    conventional critic; ``state_dict`` / ``load_state_dict`` carry it over a checkpoint (``ResumableDiagnostic``).
     Only states whose episode ended inside the rollout are scored. The conventional critic fits the returns as the
     model's critic does: its epochs and minibatches (``rollout_critic_minibatches``: the authors' even split where the
     model has it), its optimizer and settings at the critic's learning rate, and ``weight_init``.
@@ -59,6 +117,9 @@ class LocalGeneralizationCallback(BaseCallback):
     def _init_callback(self) -> None:
         if not hasattr(self.model, "history"):
             raise TypeError("LocalGeneralizationCallback needs a PPOPeVFA model")
+        super()._init_callback()
+
+    def _build_critic(self) -> None:
         policy = self.model.policy
         layers = create_mlp(state_dim(policy.observation_space), 1, list(self.net_arch), policy.activation_fn)
         self.critic = nn.Sequential(*layers).to(self.model.device)
@@ -135,10 +196,10 @@ class LocalGeneralizationCallback(BaseCallback):
             observations = obs_as_tensor(pending["observations"], self.model.device)
             pending["pevfa_after"] = policy.predict_values(observations, policy.embed(data)).flatten()
         policy.set_training_mode(training)
-        for key in ERROR_KEYS:
-            self.logger.record(f"pevfa/local_gen/{key}", self._error(pending[key], pending))
-        self.logger.record("pevfa/local_gen/timesteps", pending["timesteps"])
-        self.logger.record("pevfa/local_gen/n_states", int(pending["mask"].sum()))
+        errors = {key: self._error(pending[key], pending) for key in ERROR_KEYS}
+        self.results.append({**errors, "timesteps": pending["timesteps"], "n_states": int(pending["mask"].sum())})
+        for key, value in self.results[-1].items():
+            self.logger.record(f"pevfa/local_gen/{key}", value)
 
     def _on_rollout_start(self) -> None:
         self._flush()

@@ -11,15 +11,13 @@ in the window have ended.
 
 import copy
 import warnings
-import weakref
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update, update_learning_rate
 
-from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS
+from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS, ResumableDiagnostic
 from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 from sb3_pevfa.pevfa.records import PolicyRecord
 
@@ -46,7 +44,7 @@ def soft_monte_carlo_returns(
     return returns, missing
 
 
-class QLocalGeneralizationCallback(BaseCallback):
+class QLocalGeneralizationCallback(ResumableDiagnostic):
     """Trains a conventional twin critic Q(s, a) (SB3's, the model's critic layers, optimizer and learning rate)
     beside a :class:`~sb3_pevfa.SACPeVFA` or :class:`~sb3_pevfa.TD3PeVFA` run on its replay buffer with SB3's targets
     (one update per gradient step of the model, after them; Polyak targets with the model's ``tau``), and logs per
@@ -58,11 +56,16 @@ class QLocalGeneralizationCallback(BaseCallback):
 
     Scored: transitions whose return misses at most ``tail_weight`` of discounted value (their episode terminated, or
     went on long enough after them, within the window and the next one). The conventional critic's updates and the
-    log-probabilities draw random numbers: a run with the callback is another run than one without.
+    log-probabilities draw random numbers: a run with the callback is another run than one without. ``results``
+    keeps one entry per scored window (with its snapshot's ``policy_id``); ``state_dict`` / ``load_state_dict``
+    carry the conventional critic over a checkpoint (``ResumableDiagnostic``: the resumed run's windows open at its
+    next snapshot).
 
     :param tail_weight: The largest discounted weight of the unknown rest of a scored return (0.01: a return whose
         episode was truncated at least 459 steps later at gamma 0.99)
     """
+
+    saved_attributes = ("critic", "critic_target", "optimizer")
 
     def __init__(self, tail_weight: float = 0.01, verbose: int = 0):
         super().__init__(verbose)
@@ -72,9 +75,6 @@ class QLocalGeneralizationCallback(BaseCallback):
         self._window: dict | None = None
         self._closed: dict | None = None
         self._warned_unscored = False
-        #: One entry per scored window: the four errors, ``timesteps`` (the window's end), ``n_states`` and
-        #: ``policy_id`` (its snapshot's)
-        self.results: list[dict[str, float]] = []
 
     def _init_callback(self) -> None:
         model = self.model
@@ -84,10 +84,10 @@ class QLocalGeneralizationCallback(BaseCallback):
         #: its transitions already)
         self._waiting_for = model.history.latest_policy_id
         self._updates = model._n_updates  # the model's updates from now on (a learn() without the callback: not owed)
-        if getattr(self, "_model", lambda: None)() is model:
-            return  # another learn() of the same run: its conventional critic goes on
-        self._model = weakref.ref(model)
-        policy = model.policy
+        super()._init_callback()
+
+    def _build_critic(self) -> None:
+        model, policy = self.model, self.model.policy
         self.critic = ContinuousCritic(**policy._update_features_extractor(policy.critic_kwargs, None)).to(model.device)
         self.critic_target = copy.deepcopy(self.critic).train(False)
         self.optimizer = policy.optimizer_class(self.critic.parameters(), lr=model.lr_schedule(1), **policy.optimizer_kwargs)
