@@ -839,6 +839,17 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
     np.testing.assert_allclose(figures.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
+    # off-policy runs by snapshot: a resumed one lacks windows 1 and 2, and its window 3 goes with window 3
+    full = {
+        **by_hand,
+        "pevfa_before": [1.0, 2.0, 4.0, 8.0],
+        "policy_id": [0.0, 1.0, 2.0, 3.0],
+        "timesteps": [1.0, 2.0, 3.0, 4.0],
+    }
+    resumed = {key: [values[0], values[3]] for key, values in full.items()} | {"pevfa_before": [4.0, 2.0]}
+    curves = figures.local_generalization_curves([resumed, full], 1)
+    assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
+    np.testing.assert_allclose(curves["before"], [1.0, 1.0, 4.0, 4.0])  # ratios: (0.5 * 2) ** 0.5, 1, 4, (8 * 2) ** 0.5
     # a run that went on from a checkpoint went on with its conventional critic: in the diagnostic; one without a
     # scored iteration is not
     resumed = {"local_generalization": other, "resumed_from": 2000}
@@ -1160,7 +1171,11 @@ def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
 def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_series(tmp_path, monkeypatch):
     """The checkpoint holds the diagnostic's conventional critic and the windows scored so far: the resumed run's series
     is the uninterrupted run's up to the checkpoint, then the windows opened after it (the open ones are lost)."""
+    import copy
+
     from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_pevfa.diagnostics import QLocalGeneralizationCallback
 
     use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 1)
@@ -1174,12 +1189,19 @@ def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_seri
     torch.save({**saved, "timesteps": 500}, folder / "diagnostic.pt")  # another checkpoint's: the run starts over
     assert training.load_checkpoint(folder, "sac", "opr+local-generalization", make_vec_env(TASK)) is None
     torch.save(saved, folder / "diagnostic.pt")
+    started = []  # the conventional critic when the resumed learn starts: the saved one
+    init = QLocalGeneralizationCallback._init_callback
+    monkeypatch.setattr(
+        QLocalGeneralizationCallback,
+        "_init_callback",
+        lambda self: (init(self), started.append(copy.deepcopy(self.critic.state_dict()))),
+    )
     result = training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=1000)
+    assert all(torch.equal(started[0][k], v) for k, v in saved["critic"].items())
     assert result["resumed_from"] == 1000 and result["curve"]["steps"] == [500, 1000, 1500]
     series = result["local_generalization"]
     assert whole["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0] and series["policy_id"] == [0.0, 3.0, 4.0]
     assert {key: values[0] for key, values in series.items()} == {key: values[0] for key, values in whole.items()}
-    assert series["pevfa_before"][1:] != whole["pevfa_before"][3:]  # after it: another run (its env began anew)
     assert not folder.exists()
 
 

@@ -350,3 +350,35 @@ def test_a_diagnostic_state_is_checked():
     wider.load_state_dict(callback.state_dict())
     with pytest.raises(RuntimeError, match="size mismatch"):  # torch's: the critic is not the one saved
         model.learn(64, callback=wider, reset_num_timesteps=False)
+
+
+def _tensors(tree):
+    if isinstance(tree, th.Tensor):
+        yield tree
+    elif isinstance(tree, dict | list | tuple):
+        for value in tree.values() if isinstance(tree, dict) else tree:
+            yield from _tensors(value)
+
+
+def test_a_loaded_state_goes_to_the_next_learn_of_any_model_and_stays_as_given(tmp_path):
+    """A callback that has a critic, loaded with a state, then learning with the same model or another one (loaded
+    from a file): the state's critic goes on; training changes the callback's copies, not the state given."""
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", **FAST)
+    callback = LocalGeneralizationCallback()
+    model.learn(128, callback=callback)
+    state = callback.state_dict()
+    given = [tensor.clone() for tensor in _tensors(state)]
+    model.learn(64, callback=callback, reset_num_timesteps=False)  # the callback moves on from the state
+    callback.load_state_dict(state)  # back to it, with the same model
+    model.learn(0, callback=callback, reset_num_timesteps=False)
+    assert all(th.equal(callback.critic.state_dict()[key], value) for key, value in state["critic"].items())
+    model.learn(64, callback=callback, reset_num_timesteps=False)
+    model.save(tmp_path / "model")
+    loaded = PPOPeVFA.load(tmp_path / "model", env=model.get_env())
+    callback.load_state_dict(state)
+    assert len(callback.results) == 2 and callback.state_dict()["results"] == state["results"]
+    loaded.learn(0, callback=callback, reset_num_timesteps=False)
+    assert all(th.equal(callback.critic.state_dict()[key], value) for key, value in state["critic"].items())
+    loaded.learn(128, callback=callback, reset_num_timesteps=False)
+    assert len(callback.results) == 4 and callback.optimizer.state_dict()["state"][0]["step"] > 2
+    assert all(th.equal(now, before) for now, before in zip(_tensors(state), given, strict=True))

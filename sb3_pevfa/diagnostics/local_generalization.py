@@ -59,37 +59,41 @@ class ResumableDiagnostic(BaseCallback):
         raise NotImplementedError
 
     def _init_callback(self) -> None:
-        if getattr(self, "_model", lambda: None)() is self.model:
+        same = getattr(self, "_model", lambda: None)() is self.model
+        if same and self._saved is None:
             return  # another learn() of the same run: its conventional critic goes on
         self._model = weakref.ref(self.model)
         if self._saved is None:
             self._build_critic()
             return
-        with th.random.fork_rng(devices=[]):  # its weights are replaced: the run's random numbers stay the run's
-            self._build_critic()
+        if not same or not hasattr(self, "critic"):  # a new model (one loaded from a file too): a critic to load into
+            with th.random.fork_rng(devices=[]):  # its weights are replaced: the run's random numbers stay the run's
+                self._build_critic()
         self._restore()
 
     def state_dict(self) -> dict[str, Any]:
         """The conventional critic's state, its optimizer's and the results so far (copies)."""
+        if self._saved is not None:  # loaded, not applied yet
+            return copy.deepcopy(self._saved)
         if not hasattr(self, "critic"):
             raise RuntimeError(f"{type(self).__name__} has no state before its first learn()")
         state = {name: copy.deepcopy(getattr(self, name).state_dict()) for name in self.saved_attributes}
         return {**state, "results": copy.deepcopy(self.results)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Go on from ``state`` (``state_dict()``'s): at once if the critic exists, else when ``learn`` starts."""
+        """Go on from ``state`` (``state_dict()``'s, copied: training does not change it): ``results`` at once, the
+        critic and its optimizer when the next ``learn`` starts (whichever model it is)."""
         missing = sorted({*self.saved_attributes, "results"} - set(state))
         if missing:
             raise ValueError(f"{type(self).__name__}'s state needs {', '.join(missing)}; got {', '.join(sorted(state))}")
-        self._saved = state
-        if hasattr(self, "critic"):
-            self._restore()
+        self._saved = copy.deepcopy(state)  # optimizer.load_state_dict keeps the given moment tensors, and Adam
+        self.results = copy.deepcopy(state["results"])  # updates them in place
 
     def _restore(self) -> None:
         state, self._saved = self._saved, None
         for name in self.saved_attributes:
             getattr(self, name).load_state_dict(state[name])
-        self.results = copy.deepcopy(state["results"])
+        self.results = state["results"]  # a copy already (load_state_dict's)
 
 
 class LocalGeneralizationCallback(ResumableDiagnostic):
@@ -122,9 +126,10 @@ class LocalGeneralizationCallback(ResumableDiagnostic):
     def _build_critic(self) -> None:
         policy = self.model.policy
         layers = create_mlp(state_dim(policy.observation_space), 1, list(self.net_arch), policy.activation_fn)
-        self.critic = nn.Sequential(*layers).to(self.model.device)
-        if policy.weight_init == "normal_fan_in":
-            init_normal_fan_in(self.critic)
+        critic = nn.Sequential(*layers)
+        if policy.weight_init == "normal_fan_in":  # on the CPU, before the move: the CPU generator alone (fork_rng's)
+            init_normal_fan_in(critic)
+        self.critic = critic.to(self.model.device)
         kwargs = policy.optimizer_kwargs  # the model's optimizer settings (Adam's epsilon), at the critic's rate
         self.optimizer = policy.optimizer_class(self.critic.parameters(), lr=self.model.critic_lr_schedule(1), **kwargs)
 

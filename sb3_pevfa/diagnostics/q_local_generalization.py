@@ -52,14 +52,13 @@ class QLocalGeneralizationCallback(ResumableDiagnostic):
     discounted returns (SAC: with its entropy bonus at the moment of acting) of the window's transitions, before and
     after the window: ``pevfa/local_gen/{pevfa_before, pevfa_after, vfa_before, vfa_after}`` (plus ``timesteps``,
     the window's end, and ``n_states``), the keys of the on-policy diagnostic, a logger row per window; ``results``
-    keeps them too.
+    keeps them too, with the window's snapshot's ``policy_id``.
 
     Scored: transitions whose return misses at most ``tail_weight`` of discounted value (their episode terminated, or
     went on long enough after them, within the window and the next one). The conventional critic's updates and the
-    log-probabilities draw random numbers: a run with the callback is another run than one without. ``results``
-    keeps one entry per scored window (with its snapshot's ``policy_id``); ``state_dict`` / ``load_state_dict``
-    carry the conventional critic over a checkpoint (``ResumableDiagnostic``: the resumed run's windows open at its
-    next snapshot).
+    log-probabilities draw random numbers: a run with the callback is another run than one without.
+    ``state_dict`` / ``load_state_dict`` carry the conventional critic over a checkpoint (``ResumableDiagnostic``;
+    the windows not scored yet are lost, and the resumed run's first window opens at its next snapshot).
 
     :param tail_weight: The largest discounted weight of the unknown rest of a scored return (0.01: a return whose
         episode was truncated at least 459 steps later at gamma 0.99)
