@@ -829,8 +829,10 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     assert series["vfa_after"] != series["vfa_before"]  # the conventional critic trains beside the run
     by_hand = {"pevfa_before": [1.0, 4.0, 3.0, np.nan], "vfa_before": [2.0, 2.0, 1.0, 1.0],
                "pevfa_after": [1.0, 1.0, 1.0, 1.0], "vfa_after": [3.0, 1.0, 2.0, 1.0]}  # fmt: skip
-    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}], "ppo": [{}]}})
-    assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 |"]  # the iteration with a NaN left out
+    run = {"local_generalization": by_hand, "seed": 3, "max_average_return": 99.6}
+    rows = tables.local_generalization({"A": {"x": [run], "ppo": [{}]}})
+    # the iteration with a NaN left out; the run's ratios before: 0.5, 2 and 3
+    assert rows[2:] == ["| A | x | 1 | 3 | 2.67 / 1.67 (2.00) | 33% | 1 / 2 | 3: 100 (2.00) |"]
     # over training: the geometric mean over runs of PeVFA's error / the conventional critic's, smoothed over 3
     other = {**by_hand, "pevfa_before": [4.0, 1.0, 3.0, 2.0], "timesteps": [1.0, 2.0, 3.0, 4.0]}
     curves = figures.local_generalization_curves([{**by_hand, "timesteps": [1.0, 2.0, 3.0, 4.0]}, other], 3)
@@ -852,10 +854,12 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     np.testing.assert_allclose(curves["before"], [1.0, 1.0, 4.0, 4.0])  # ratios: (0.5 * 2) ** 0.5, 1, 4, (8 * 2) ** 0.5
     # a run that went on from a checkpoint went on with its conventional critic: in the diagnostic; one without a
     # scored iteration is not
-    resumed = {"local_generalization": other, "resumed_from": 2000}
-    empty = {"local_generalization": {}}
-    rows = tables.local_generalization({"A": {"x": [{"local_generalization": by_hand}, resumed, empty]}})
-    assert rows[2:] == ["| A | x | 2 | 7 | 2.57 / 1.57 (2.00) | 29% | 1 / 1.86 |"]  # 18/7, 11/7; 2 of 7; 13/7
+    resumed = {"local_generalization": {**other, "pevfa_before": [4.0, 1.0, 3.0, 0.5]}, "resumed_from": 2000,
+               "seed": 1, "max_average_return": 250.0}  # fmt: skip
+    empty = {"local_generalization": {}, "seed": 0}
+    rows = tables.local_generalization({"A": {"x": [run, resumed, empty]}})
+    # 16.5/7, 11/7; median of the 7 ratios 0.5, 2, 3, 2, 0.5, 3, 0.5; 3 of 7; 13/7; the resumed run's: 0.5, 0.5, 2, 3
+    assert rows[2:] == ["| A | x | 2 | 7 | 2.36 / 1.57 (2.00) | 43% | 1 / 1.86 | 1: 250 (1.25), 3: 100 (2.00) |"]
 
 
 def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):

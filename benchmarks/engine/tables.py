@@ -363,14 +363,18 @@ def diagnosed(variant_runs: list[dict[str, Any]]) -> list[dict[str, list[float]]
 def local_generalization(runs: Runs) -> list[str]:
     """Per task and variant with the diagnostic: the PeVFA's and the conventional critic's errors against the
     Monte-Carlo returns of each new policy before and after the iteration's critic update (paper Fig. 3b / 8), over
-    the runs of ``diagnosed``."""
+    the runs of ``diagnosed``; per run, its seed, its best return and its median ratio before the update."""
     lines = ["| task | variant | runs | iterations | error before update, PeVFA / VFA (median ratio) | PeVFA closer before "
-             "| error after update, PeVFA / VFA |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| error after update, PeVFA / VFA | per run: seed, best return (median ratio before) |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for task, by_variant in runs.items():
         for variant, variant_runs in by_variant.items():
             series = diagnosed(variant_runs)
             if not series:
                 continue
+            kept = sorted((r for r in variant_runs if r.get("local_generalization")), key=lambda r: r.get("seed", 0))
+            per_run = ", ".join(f"{r.get('seed', '?')}: {r.get('max_average_return', np.nan):.0f} "
+                                f"({_median_ratio(r['local_generalization']):.2f})" for r in kept)  # fmt: skip
             errors = {key: np.concatenate([np.asarray(s[key], float) for s in series]) for key in
                       ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after")}  # fmt: skip
             valid = np.all([np.isfinite(e) for e in errors.values()], axis=0)
@@ -380,8 +384,15 @@ def local_generalization(runs: Runs) -> list[str]:
             mean = {key: f"{np.mean(value):.3g}" for key, value in errors.items()}
             before = f"{mean['pevfa_before']} / {mean['vfa_before']} ({ratio:.2f})"
             after = f"{mean['pevfa_after']} / {mean['vfa_after']}"
-            lines.append(f"| {task} | {variant} | {len(series)} | {int(valid.sum())} | {before} | {closer:.0%} | {after} |")
+            lines.append(f"| {task} | {variant} | {len(series)} | {int(valid.sum())} | {before} | {closer:.0%} | {after} "
+                         f"| {per_run} |")  # fmt: skip
     return lines if len(lines) > 2 else []
+
+
+def _median_ratio(series: dict[str, list[float]]) -> float:
+    """The median over a run's iterations of PeVFA's error before the update over the conventional critic's."""
+    ratio = np.asarray(series["pevfa_before"], float) / np.asarray(series["vfa_before"], float)
+    return float(np.median(ratio[np.isfinite(ratio)])) if np.isfinite(ratio).any() else np.nan
 
 
 def training_signals(runs: Runs) -> list[str]:
