@@ -374,7 +374,9 @@ def test_a_loaded_state_goes_to_the_next_learn_of_any_model_and_stays_as_given(t
     assert all(th.equal(callback.critic.state_dict()[key], value) for key, value in state["critic"].items())
     model.learn(64, callback=callback, reset_num_timesteps=False)
     model.save(tmp_path / "model")
+    model.save_history(tmp_path / "history")
     loaded = PPOPeVFA.load(tmp_path / "model", env=model.get_env())
+    loaded.load_history(tmp_path / "history")
     callback.load_state_dict(state)
     assert len(callback.results) == 2 and callback.state_dict()["results"] == state["results"]
     loaded.learn(0, callback=callback, reset_num_timesteps=False)
