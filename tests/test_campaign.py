@@ -1172,6 +1172,19 @@ def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
     assert all(min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after"))
 
 
+def whole_then_stopped(campaign: definitions.Campaign, stop_at: int, checkpoint_freq: int, tmp_path: pathlib.Path,
+                       monkeypatch: pytest.MonkeyPatch) -> tuple[dict[str, list[float]], pathlib.Path]:  # fmt: skip
+    """The diagnostic's series of the campaign's one run, and the checkpoint folder of the same run stopped at the
+    evaluation of ``stop_at`` steps."""
+    variant = campaign.variants[0]
+    whole = training.train(campaign, TASK, variant, 0)["local_generalization"]
+    stop_once_at(monkeypatch, stop_at, tmp_path / "stopped")
+    folder = tmp_path / "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        training.train(campaign, TASK, variant, 0, checkpoint=folder, checkpoint_freq=checkpoint_freq)
+    return whole, folder
+
+
 def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_series(tmp_path, monkeypatch):
     """The checkpoint holds the diagnostic's conventional critic and the windows scored so far: the resumed run's series
     is the uninterrupted run's up to the checkpoint, then the windows opened after it (the open ones are lost)."""
@@ -1183,11 +1196,7 @@ def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_seri
 
     use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 1)
-    whole = training.train(tiny, TASK, "opr+local-generalization", 0)["local_generalization"]
-    stop_once_at(monkeypatch, 1500, tmp_path / "stopped")
-    folder = tmp_path / "checkpoint"
-    with pytest.raises(KeyboardInterrupt):
-        training.train(tiny, TASK, "opr+local-generalization", 0, checkpoint=folder, checkpoint_freq=1000)
+    whole, folder = whole_then_stopped(tiny, 1500, 1000, tmp_path, monkeypatch)
     saved = torch.load(folder / "diagnostic.pt")
     assert saved["timesteps"] == 1000 and [r["policy_id"] for r in saved["results"]] == [0]
     torch.save({**saved, "timesteps": 500}, folder / "diagnostic.pt")  # another checkpoint's: the run starts over
@@ -1212,11 +1221,7 @@ def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_seri
 def test_an_on_policy_diagnostic_logs_the_last_iteration_before_its_checkpoint(tmp_path, monkeypatch):
     """The diagnostic's hooks run before the checkpoint's: the iteration that ends at the checkpoint is in it."""
     tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e+local-generalization",), (0,), 6000, 2000, 1)
-    whole = training.train(tiny, TASK, "opr-e2e+local-generalization", 0)["local_generalization"]
-    stop_once_at(monkeypatch, 6000, tmp_path / "stopped")
-    folder = tmp_path / "checkpoint"
-    with pytest.raises(KeyboardInterrupt):
-        training.train(tiny, TASK, "opr-e2e+local-generalization", 0, checkpoint=folder, checkpoint_freq=2000)
+    whole, folder = whole_then_stopped(tiny, 6000, 2000, tmp_path, monkeypatch)
     result = training.train(tiny, TASK, "opr-e2e+local-generalization", 0, checkpoint=folder, checkpoint_freq=2000)
     series = result["local_generalization"]
     assert result["resumed_from"] == 4000 and series["timesteps"] == whole["timesteps"] == [2000.0, 4000.0, 6000.0]
