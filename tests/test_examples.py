@@ -17,7 +17,7 @@ OUTPUTS = {
     "embedding_maps.py": "*.png",
     "zero_shot_values.py": "*.png",
     "quickstart.py": "history.npz",
-    "off_policy.py": "diagnostic.pt",
+    "off_policy.py": "replay_buffer.snapshots.npz",
     "train_pevfa.py": "model.zip",
     "custom_representation.py": "*/progress.csv",
     "zoo_commands.sh": "plots/*.png",
@@ -48,6 +48,8 @@ def test_example_runs_tiny(tmp_path, example):
         drawn = {p.name for p in (out / "plots").glob("optimization_history.*")}
         assert drawn == {"optimization_history.html", "optimization_history.png"}
     assert list(out.glob(OUTPUTS[example])), sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*"))[:50]
+    if example == "off_policy.py":  # the diagnostic's state saved beside the model, for its resume
+        assert (out / "diagnostic.pt").exists()
     if example == "train_pevfa.py":  # the steps it trained, not the ones asked for
         assert "after 1024 steps" in result.stdout
     if example == "zero_shot_values.py":
