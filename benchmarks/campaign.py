@@ -22,6 +22,8 @@ it ran.
     # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
     nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &
     python benchmarks/campaign.py status --campaign table1
+    # a machine lent for two hours: only runs expected to end by then, a trial still running then stopped
+    python benchmarks/campaign.py run --campaign table1 --workers 2 --until +2h
     # many machines: one database, the same command on each
     python benchmarks/campaign.py run --campaign table1 --workers 16 --storage postgresql://user:pw@host/db
     # a campaign of your own (its definition is stored in the study on creation)

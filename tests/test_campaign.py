@@ -2,11 +2,13 @@
 journal storage, a killed worker's trial retried exactly once, a resume from the journal and the report from the
 storage alone."""
 
+import datetime
 import functools
 import json
 import logging
 import os
 import pathlib
+import random
 import shutil
 import signal
 import socket
@@ -1226,3 +1228,150 @@ def test_an_on_policy_diagnostic_logs_the_last_iteration_before_its_checkpoint(t
     series = result["local_generalization"]
     assert result["resumed_from"] == 4000 and series["timesteps"] == whole["timesteps"] == [2000.0, 4000.0, 6000.0]
     assert {key: values[:2] for key, values in series.items()} == {key: values[:2] for key, values in whole.items()}
+
+
+# --- deadline.py: a deadline for the workers (run --until) ---------------------------------------------------------
+def test_until_reads_a_clock_time_a_date_time_and_a_duration_and_names_its_forms_otherwise():
+    from engine.deadline import parse_until
+
+    now = datetime.datetime(2026, 12, 7, 10, 30).timestamp()
+    assert parse_until("+90m", now) == now + 5400 and parse_until("+2.5h", now) == now + 9000
+    assert parse_until("11:15", now) == datetime.datetime(2026, 12, 7, 11, 15).timestamp()  # later today
+    assert parse_until("9:00", now) == datetime.datetime(2026, 12, 8, 9, 0).timestamp()  # passed today: tomorrow's
+    assert parse_until("2026-12-09T08:05", now) == datetime.datetime(2026, 12, 9, 8, 5).timestamp()
+    with pytest.raises(ValueError, match="has passed"):
+        parse_until("2026-12-07T10:00", now)
+    for wrong in ("25:00", "90m", "+1d", "tomorrow"):
+        with pytest.raises(ValueError, match=r"give HH:MM .*, YYYY-MM-DDTHH:MM .*, \+90m or \+2\.5h"):
+            parse_until(wrong, now)
+
+
+def _completed(study: optuna.Study, campaign, point: tuple[str, str, int], wall: float) -> None:
+    """A complete trial of ``point`` whose run took ``wall`` seconds, a tenth of them evaluating."""
+    distributions = {name: CategoricalDistribution(values) for name, values in campaign.search_space.items()}
+    times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
+             "eval_wall_seconds": 0.1 * wall}  # fmt: skip
+    params = dict(zip(("task", "variant", "seed"), point))
+    study.add_trial(optuna.create_trial(state=TrialState.COMPLETE, value=1.0, params=params, distributions=distributions,
+                                        user_attrs=times))  # fmt: skip
+
+
+def test_a_worker_under_a_deadline_takes_only_the_points_expected_to_end_before_it(tmp_path, monkeypatch):
+    """A run of the grid took 100 s (its other variant's 200 s on another task): with 60 s left the worker takes no
+    new point of either, but the point whose checkpoint has done 70 s of its 100; with more time, the rest."""
+    from engine.deadline import Deadline
+
+    tiny = definitions.Campaign("paper", (TASK, "Pendulum-v1"), ("ppo", "opr-e2e"), (0, 1, 2), 4000, 2000, 2)
+    journal = str(tmp_path / "deadline.journal")
+    study, _ = storage.open_study("deadline", storage.storage_of("deadline", journal), tiny)
+    _completed(study, tiny, (TASK, "ppo", 0), 100.0)
+    _completed(study, tiny, (TASK, "opr-e2e", 0), 200.0)
+    _completed(study, tiny, ("Pendulum-v1", "ppo", 0), 100.0)
+    folder = tiny.checkpoint_folder("deadline", (TASK, "ppo", 2))
+    folder.mkdir(parents=True)
+    (folder / "state.json").write_text(json.dumps({"timesteps": 2000, "wall": 60.0, "eval_wall": 10.0}))
+    trained = []
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        trained.append((task, variant, seed))
+        wall = 200.0 if variant == "opr-e2e" else 100.0  # as long as the complete runs: the estimates stay
+        times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
+                 "eval_wall_seconds": 0.1 * wall}  # fmt: skip
+        return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
+
+    monkeypatch.setattr(workers, "train", train)
+    workers.work_on("deadline", study, tiny, Deadline(time.time() + 60, ["deadline"], journal))
+    assert trained == [(TASK, "ppo", 2)]  # 30 s left of its 100; ppo's other points 100 s, opr-e2e's 200 s
+    workers.work_on("deadline", study, tiny, Deadline(time.time() + 150, ["deadline"], journal))
+    assert sorted(trained[1:]) == [(TASK, "ppo", 1), ("Pendulum-v1", "ppo", 1), ("Pendulum-v1", "ppo", 2)]
+    workers.work_on("deadline", study, tiny, Deadline(time.time() + 250, ["deadline"], journal))
+    assert len(trained) == 9 and storage.pending(study, tiny) == 0  # opr-e2e on Pendulum-v1: 200 s by the ratio
+    assert len(study.get_trials()) == 12 and not [t for t in study.get_trials() if t.state != TrialState.COMPLETE]
+
+
+def test_a_deadline_leaves_a_waiting_retry_that_would_not_end_before_it():
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+    study.sampler = optuna.samplers.GridSampler(tiny.search_space)
+    storage.enqueue(study, (TASK, "ppo", 1))
+    rng = random.Random(0)
+    assert not storage.draw(study, tiny, rng, lambda point: point != (TASK, "ppo", 1))  # not another point instead
+    assert storage.draw(study, tiny, rng, lambda point: True) and storage.draw(study, tiny, rng)
+    assert len(study.get_trials()) == 1  # the waiting trial starts next: nothing more enqueued
+    study.tell(study.ask(), 1.0)
+    assert not storage.draw(study, tiny, rng, lambda point: False) and len(study.get_trials()) == 1
+    assert storage.draw(study, tiny, rng, lambda point: point == (TASK, "ppo", 0))
+    assert study.get_trials()[-1].system_attrs["fixed_params"]["seed"] == 0
+
+
+def test_a_trial_running_at_the_deadline_stops_as_by_sigterm(tmp_path, monkeypatch):
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    journal = str(tmp_path / "late.journal")
+    study, _ = storage.open_study("late", storage.storage_of("late", journal), tiny)
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        time.sleep(30)  # the deadline's alarm ends it
+        raise AssertionError("not stopped")
+
+    monkeypatch.setattr(workers, "train", train)
+    saved = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)]
+    start = time.monotonic()
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            workers.work(["late"], journal, until=time.time() + 1.0)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        for s, handler in zip((signal.SIGINT, signal.SIGTERM, signal.SIGALRM), saved):
+            signal.signal(s, handler)
+    assert stopped.value.code == workers.STOPPED and time.monotonic() - start < 10
+    (trial,) = study.get_trials()
+    assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
+
+
+def test_run_gives_its_workers_the_deadline_and_names_the_points_it_left(tmp_path, monkeypatch, capsys):
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    journal = str(tmp_path / "left.journal")
+    storage.open_study("left", storage.storage_of("left", journal), tiny)
+    commands, real_popen = [], subprocess.Popen
+
+    def popen(command):
+        commands.append(command)
+        return real_popen(["true"])  # a worker that found nothing to end before the deadline
+
+    monkeypatch.setattr(workers.subprocess, "Popen", popen)
+    until = time.time() + 600
+    workers.run(["left"], journal, 1, 1800.0, until=until)
+    (command,) = commands
+    from engine.deadline import parse_until
+
+    assert parse_until(command[command.index("--until") + 1]) == pytest.approx(until, abs=1e-3)
+    at = datetime.datetime.fromtimestamp(until)
+    assert f"2 grid points left for a later run: none expected to end before the deadline at {at:%Y-%m-%d %H:%M}" in (
+        capsys.readouterr().out
+    )
+
+
+def test_a_deadline_reads_the_longer_of_complete_runs_and_a_running_trials_pace(tmp_path):
+    """A running trial's pace (its first steps, faster than a whole run's) does not shorten the time that complete
+    runs give (here another variant's on the task, scaled by the two variants' ratio elsewhere); it counts where no
+    complete run tells the time; a point with no estimate at all is taken."""
+    from engine.deadline import Deadline
+
+    tiny = definitions.Campaign("paper", (TASK, "Pendulum-v1"), ("ppo", "opr-e2e"), (0, 1, 2), 4000, 2000, 2)
+    journal = str(tmp_path / "pace.journal")
+    study, _ = storage.open_study("pace", storage.storage_of("pace", journal), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    progress = {"steps": 2000, "cpu_s": 10.0, "wall_s": 10.0}  # 10 s for half its steps: 20 s a run by its pace
+    params = {"task": "Pendulum-v1", "variant": "opr-e2e", "seed": 1}
+    study.add_trial(optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions,
+                                        user_attrs={"progress": progress}))  # fmt: skip
+
+    def fits(left: float, point: tuple[str, str, int]) -> bool:
+        return Deadline(time.time() + left, ["pace"], journal).fitting("pace", tiny)(point)
+
+    point = ("Pendulum-v1", "opr-e2e", 2)
+    assert fits(50, point) and not fits(15, point)  # by the pace alone
+    assert fits(1, (TASK, "ppo", 2))  # no run of the variant, nor of another variant on the task
+    for task, variant, wall in ((TASK, "ppo", 100.0), (TASK, "opr-e2e", 200.0), ("Pendulum-v1", "ppo", 100.0)):
+        _completed(study, tiny, (task, variant, 0), wall)
+    assert not fits(50, point) and not fits(190, point) and fits(210, point)  # 100 s x 2: ppo's time, opr-e2e's ratio

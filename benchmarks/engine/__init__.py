@@ -10,8 +10,9 @@ Each module imports only the ones listed before it:
 - ``zoo``: one rl-zoo3 training of the zoo protocol, written as a JSON record;
 - ``training``: one trial's training, with its evaluation curve, its times and its checkpoints;
 - ``storage``: a campaign's study in its storage, its grid points' trials, and the retries of dead workers' trials;
-- ``workers``: the worker processes that train the grid points, and ``run``, which starts them;
 - ``results``: the runs, progress and notes a campaign's storage holds, its status and expected duration;
+- ``deadline``: the grid points a worker takes before a deadline (``run --until``);
+- ``workers``: the worker processes that train the grid points, and ``run``, which starts them;
 - ``tables`` and ``figures``: the report's tables and figures; ``report``: the report in one text;
 - ``zoo_report``: the report of zoo runs from their JSON records;
 - ``commands``: the command lines.

@@ -12,6 +12,7 @@ import sys
 import optuna
 
 from . import training_logs, zoo_report
+from .deadline import UNTIL_FORMS, parse_until
 from .definitions import CAMPAIGNS, OFF_POLICY, VARIANTS, ZOO_VARIANTS, Campaign
 from .report import report, summary
 from .results import status
@@ -39,6 +40,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     parser.add_argument("--stale-after", type=float, default=1800.0,
                         help="journal storage: a RUNNING trial of another machine without a heartbeat for this "
                              "many seconds is failed and enqueued again (here: once its process is gone)")  # fmt: skip
+    parser.add_argument("--until", default=None,
+                        help="run, work: a deadline: only grid points expected to end before it are taken, and trials "
+                             f"still running at it stop (as by SIGTERM; the next run goes on): {UNTIL_FORMS}")  # fmt: skip
     parser.add_argument("--retry-raised", action="store_true",
                         help="run: enqueue again the grid points whose training raised (once the cause is mended; "
                              "the status shows each one's exception)")  # fmt: skip
@@ -58,6 +62,12 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
         parser.error("--eval-freq, --eval-episodes and --conf belong to a new campaign's definition (with --protocol, ...)")
     if args.retry_raised and args.command != "run":
         parser.error("--retry-raised is an option of run")
+    if args.until is not None and args.command == "status":
+        parser.error("--until is an option of run and work")
+    try:
+        until = None if args.until is None else parse_until(args.until)
+    except ValueError as error:
+        parser.error(str(error))
     given = None
     if defining:
         missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
@@ -82,9 +92,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     except ValueError as error:
         parser.error(str(error))
     if args.command == "run":
-        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised)
+        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised, until)
     elif args.command == "work":
-        work(args.campaign, args.storage, args.stale_after)
+        work(args.campaign, args.storage, args.stale_after, until)
     else:
         try:
             status(args.campaign, args.storage, args.workers)

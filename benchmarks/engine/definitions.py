@@ -222,10 +222,12 @@ class Campaign:
         """Protocol zoo: the hyperparameter file ``variant`` trains with."""
         return ROOT / self.conf if self.conf else CONFS[base_algorithm(variant)]
 
-    def checkpoint_folder(self, name: str) -> pathlib.Path:
-        """Where the running trials of this campaign (under this study name) keep their checkpoints."""
+    def checkpoint_folder(self, name: str, point: tuple[str, str, int] | None = None) -> pathlib.Path:
+        """Where the running trials of this campaign (under this study name) keep their checkpoints; with ``point``
+        (task, variant, seed), that grid point's."""
         digest = hashlib.sha1(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:10]
-        return CHECKPOINT_DIR / f"{name}-{digest}"
+        folder = CHECKPOINT_DIR / f"{name}-{digest}"
+        return folder / "{}_{}_seed{}".format(*point) if point else folder
 
     @classmethod
     def from_definition(cls, definition: dict[str, Any]) -> "Campaign":

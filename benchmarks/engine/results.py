@@ -21,14 +21,13 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
     names = list(dict.fromkeys(names))  # a campaign named twice counts once
     runs: Runs = {}
     progress: dict[tuple[str, str], list[dict[str, float]]] = {}
-    notes, campaigns, resumed = [], [], []
+    notes, resumed = [], []
     studies = [open_study(name, storage_of(name, storage)) for name in names]
-    mixed = len({campaign.protocol for _, campaign in studies}) > 1
+    campaigns = [campaign for _, campaign in studies]
     for study, campaign in studies:
-        campaigns.append(campaign)
         by_number = {t.number: t for t in study.get_trials(deepcopy=False)}
         for (task, variant, seed), trials in grid_states(study, campaign).items():
-            label = f"{campaign.protocol}:{variant}" if mixed else variant
+            label = variant_label(campaign, variant, campaigns)
             complete = [t for t in trials if t.state == TrialState.COMPLETE]
             running = [
                 {**t.user_attrs["progress"], "seed": seed}
@@ -54,29 +53,38 @@ def collect(names: list[str], storage: str | None) -> tuple[Runs, dict, list[str
     return {task: runs[task] for task in order if task in runs}, progress, notes, campaigns
 
 
-def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
-    """The campaigns' CPU time and the wall-clock time left (a running trial's less its training so far). A run's
-    time per task and variant: the completed runs' mean, else extrapolated from running trials' progress (training
-    only), else scaled from another variant's time on the task by the two variants' ratio where both ran, else the
-    variant's mean, else its protocol's other variants' mean on the task; grid points with none are counted apart."""
-    times: dict[tuple[str, str], np.ndarray] = {}  # (CPU, wall-clock) seconds per run
+def variant_label(campaign: Campaign, variant: str, campaigns: list[Campaign]) -> str:
+    """A variant's name among ``campaigns``: ``protocol:variant`` where they mix protocols."""
+    return f"{campaign.protocol}:{variant}" if len({c.protocol for c in campaigns}) > 1 else variant
+
+
+def run_times(runs: Runs, progress: dict, campaigns: list[Campaign]) -> dict[tuple[str, str], np.ndarray]:
+    """(CPU, wall-clock) seconds of a whole run, training and evaluation, per task and variant label: the completed
+    runs' mean, else extrapolated from running trials' progress (training only)."""
+    times: dict[tuple[str, str], np.ndarray] = {}
     for task, by_variant in runs.items():
         for variant, variant_runs in by_variant.items():
             cpu = np.mean([r["cpu_seconds"] + r["eval_cpu_seconds"] for r in variant_runs])
             wall = np.mean([r["wall_seconds"] + r["eval_wall_seconds"] for r in variant_runs])
             times[task, variant] = np.array([cpu, wall])
-    mixed = len({c.protocol for c in campaigns}) > 1
-    points = [
-        (c, (task, f"{c.protocol}:{variant}" if mixed else variant), seed) for c in campaigns for task, variant, seed in c.grid
-    ]
-    for campaign, key, _ in points:
-        if key not in times and progress.get(key):
-            measured = np.mean([(p["cpu_s"], p["wall_s"]) for p in progress[key]], 0)
-            times[key] = measured / np.mean([p["steps"] for p in progress[key]]) * campaign.timesteps
+    for campaign in campaigns:
+        for task, variant, _ in campaign.grid:
+            key = (task, variant_label(campaign, variant, campaigns))
+            if key not in times and progress.get(key):
+                measured = np.mean([(p["cpu_s"], p["wall_s"]) for p in progress[key]], 0)
+                times[key] = measured / np.mean([p["steps"] for p in progress[key]]) * campaign.timesteps
+    return times
+
+
+def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], workers: int) -> str:
+    """The campaigns' CPU time and the wall-clock time left (a running trial's less its training so far). A run's
+    time per task and variant: :func:`run_times`, else :func:`scaled_time`; grid points with none are counted apart."""
+    times = run_times(runs, progress, campaigns)
+    points = [((task, variant_label(c, variant, campaigns)), seed) for c in campaigns for task, variant, seed in c.grid]
     total = remaining = 0.0
     unknown = 0
-    for _, key, seed in points:
-        time = times[key] if key in times else scaled_time(times, key)
+    for key, seed in points:
+        time = time_of(times, key)
         elapsed = max([p["wall_s"] for p in progress.get(key, []) if p.get("seed") == seed], default=0.0)
         done = any(r["seed"] == seed for r in runs.get(key[0], {}).get(key[1], []))
         if time is None:
@@ -97,6 +105,11 @@ def expected_duration(runs: Runs, progress: dict, campaigns: list[Campaign], wor
     if unknown:
         text += f" Not counted: {unknown} runs of variants with no run yet."
     return text
+
+
+def time_of(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) -> np.ndarray | None:
+    """A run's (CPU, wall-clock) seconds: measured (:func:`run_times`), else :func:`scaled_time`."""
+    return times[key] if key in times else scaled_time(times, key)
 
 
 def scaled_time(times: dict[tuple[str, str], np.ndarray], key: tuple[str, str]) -> np.ndarray | None:

@@ -7,6 +7,7 @@ import random
 import socket
 import time
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import optuna
@@ -204,15 +205,21 @@ def enqueue(study: optuna.Study, point: tuple[str, str, int], **system_attrs: An
     study.add_trial(optuna.create_trial(state=TrialState.WAITING, system_attrs={"fixed_params": params, **system_attrs}))
 
 
-def draw(study: optuna.Study, campaign: Campaign, rng: random.Random) -> None:
+def draw(
+    study: optuna.Study, campaign: Campaign, rng: random.Random, fits: Callable[[tuple[str, str, int]], bool] | None = None
+) -> bool:
     """Enqueue a grid point that no trial holds, drawn at random (each worker its own draw, so that workers starting
-    together rarely take the same one), unless a trial waits already (a retry first)."""
+    together rarely take the same one), unless a trial waits already (a retry first). With ``fits``, only a point
+    it accepts, and a waiting trial only where it accepts that trial's point (the first one waiting, which Optuna
+    starts next). Whether a trial waits to start now."""
     states = grid_states(study, campaign)
-    if any(t.state == TrialState.WAITING for trials in states.values() for t in trials):
-        return
-    free = [point for point, trials in states.items() if not trials]
+    waiting = sorted((t.number, point) for point, trials in states.items() for t in trials if t.state == TrialState.WAITING)
+    if waiting:
+        return fits is None or fits(waiting[0][1])
+    free = [point for point, trials in states.items() if not trials and (fits is None or fits(point))]
     if free:
         enqueue(study, rng.choice(free))
+    return bool(free)
 
 
 def pending(study: optuna.Study, campaign: Campaign) -> int:

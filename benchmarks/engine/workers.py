@@ -4,6 +4,7 @@ recovers the trials of dead workers, starts the worker processes (``benchmarks/c
 progress."""
 
 import contextlib
+import datetime
 import importlib
 import logging
 import os
@@ -20,6 +21,7 @@ import gymnasium
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from .deadline import Deadline
 from .definitions import BOX_ACTIONS, ROOT, Campaign
 from .storage import (
     boot_id,
@@ -68,7 +70,7 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
                 raise optuna.TrialPruned()
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
-            folder = campaign.checkpoint_folder(trial.study.study_name) / f"{task}_{variant}_seed{seed}"
+            folder = campaign.checkpoint_folder(trial.study.study_name, point)
             result = train(campaign, task, variant, seed, trial, checkpoint=folder)
             for key, value in result.items():
                 trial.set_user_attr(key, value)
@@ -128,11 +130,12 @@ def _stop(*_: Any) -> None:
     raise KeyboardInterrupt
 
 
-def work(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
-    """One worker (:func:`work_on_all`); stopped (SIGINT, SIGTERM), it exits with ``STOPPED`` and no traceback."""
+def work(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None) -> None:
+    """One worker (:func:`work_on_all`); stopped (SIGINT, SIGTERM, the deadline), it exits with ``STOPPED`` and no
+    traceback."""
     logging.getLogger("optuna.study._optimize").addFilter(_without_stop_traceback)  # its one-line warning stays
     try:
-        work_on_all(names, storage, stale_after)
+        work_on_all(names, storage, stale_after, until)
     except KeyboardInterrupt:
         _ignore_stops(exiting=True)
         raise SystemExit(STOPPED) from None
@@ -145,26 +148,32 @@ def _without_stop_traceback(record: logging.LogRecord) -> bool:
     return True
 
 
-def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800.0) -> None:
+def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None) -> None:
     """Trials of the campaigns one after another, each campaign's grid before the next one's; then, while other
-    workers run the last grid points, it waits, and runs any whose worker dies."""
+    workers run the last grid points, it waits, and runs any whose worker dies. With ``until`` (seconds since the
+    epoch) only grid points expected to end before it (a campaign's others left to the next one's), and at ``until``
+    it stops as by SIGTERM (:mod:`~engine.deadline`)."""
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    deadline = None if until is None else Deadline(until, names, storage)
+    if deadline is not None:
+        signal.signal(signal.SIGALRM, _stop)
+        signal.setitimer(signal.ITIMER_REAL, max(deadline.left(), 0.001))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
     studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
     for name, study, campaign in studies:
-        work_on(name, study, campaign)
+        work_on(name, study, campaign, deadline)
     delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
         time.sleep(delay)
         delay = min(2 * delay, WAIT_AT_MOST)
         for name, study, campaign in studies:
             recover(study, campaign, stale_after)
-            work_on(name, study, campaign)
+            work_on(name, study, campaign, deadline)
 
 
-def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
+def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None) -> None:
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
@@ -180,7 +189,8 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign) -> None:
 
     rng = random.Random()  # seeded from the OS: workers draw apart
     while pending(study, campaign):
-        draw(study, campaign, rng)
+        if not draw(study, campaign, rng, deadline and deadline.fitting(name, campaign)):
+            return  # nothing left that ends before the deadline (or another worker took the last point)
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
 
 
@@ -220,10 +230,17 @@ def check_tasks(studies: list[tuple[optuna.Study, Campaign]]) -> None:
                          'dependencies: pip install -e ".[zoo,mujoco,box2d]"):\n' + "\n".join(problems))  # fmt: skip
 
 
-def run(names: list[str], storage: str | None, workers: int, stale_after: float, retry_raised: bool = False) -> None:
+def run(
+    names: list[str],
+    storage: str | None,
+    workers: int,
+    stale_after: float,
+    retry_raised: bool = False,
+    until: float | None = None,
+) -> None:
     """Recover the trials of dead workers (with ``retry_raised``, the grid points whose training raised too), check
-    that the tasks left can be made, start ``workers`` worker processes over the campaigns in order and show the
-    grids' progress."""
+    that the tasks left can be made, start ``workers`` worker processes over the campaigns in order (with ``until``,
+    a deadline: :mod:`~engine.deadline`) and show the grids' progress."""
     studies = []
     for name in names:
         study, campaign = open_study(name, storage_of(name, storage))
@@ -240,6 +257,7 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
     command = [sys.executable, str(SCRIPT), "work", "--campaign", *names]
     command += ["--stale-after", str(stale_after)]
     command += ["--storage", storage] if storage else []
+    command += ["--until", datetime.datetime.fromtimestamp(until).isoformat()] if until is not None else []
     processes = [subprocess.Popen(command) for _ in range(workers)]
 
     def stop(*_: Any) -> None:
@@ -260,14 +278,19 @@ def run(names: list[str], storage: str | None, workers: int, stale_after: float,
     except KeyboardInterrupt:  # Ctrl-C (it reached the workers too) or SIGTERM
         stop_workers(processes)
     codes = [process.wait() for process in processes]
+    at = "" if until is None else f" at {datetime.datetime.fromtimestamp(until):%Y-%m-%d %H:%M}"
     if codes and all(code == STOPPED for code in codes):
-        raise SystemExit(f"{' '.join(names)}: stopped; the same run command goes on (a stopped trial from its checkpoint)")
+        why = f"the deadline{at} reached" if until is not None and time.time() >= until else "stopped"
+        raise SystemExit(f"{' '.join(names)}: {why}; the same run command goes on (a stopped trial from its checkpoint)")
     if any(codes):
         raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
     unfinished = [f"{name}: {failed_text(study, campaign)}" for name, (study, campaign) in zip(names, studies)
                   if failed(study, campaign)]  # fmt: skip
     if unfinished:
         raise SystemExit("\n".join(unfinished))
+    left = sum(pending(study, campaign) for study, campaign in studies)
+    if left:  # the workers found nothing more that would end before the deadline
+        print(f"{left} grid points left for a later run: none expected to end before the deadline{at}", flush=True)
 
 
 def wait_any(processes: list[subprocess.Popen], seconds: float) -> None:

@@ -1,0 +1,75 @@
+"""A time by which the workers stop (``campaign.py run --until``), for a machine lent for a while (a batch job's
+time limit, a session): a worker takes a grid point only where the run's expected wall-clock time, less what its
+checkpoint has done, ends before the deadline, and stops a trial still running at the deadline, as SIGTERM does (the
+trial marked interrupted, enqueued again by the next ``run``, going on from its checkpoint where the machine keeps it).
+A run's expected time is the longer of the status's two estimates over the campaigns the workers were given: from
+complete runs alone, and with running trials' pace (:func:`~engine.results.run_times`,
+:func:`~engine.results.scaled_time`; a run's first steps go faster than its whole); a point with no estimate is taken."""
+
+import datetime
+import json
+import re
+import time
+from collections.abc import Callable
+
+from .definitions import Campaign
+from .results import collect, run_times, time_of, variant_label
+
+#: The forms ``--until`` takes
+UNTIL_FORMS = "HH:MM (the next such local time), YYYY-MM-DDTHH:MM (local), +90m or +2.5h (from now)"
+
+
+def parse_until(text: str, now: float | None = None) -> float:
+    """The deadline ``text`` names, in seconds since the epoch; a ValueError naming the forms for any other text
+    and for a date-time that has passed."""
+    now = time.time() if now is None else now
+    relative = re.fullmatch(r"\+(\d+(?:\.\d+)?)([mh])", text.strip())
+    if relative:
+        return now + float(relative[1]) * (60.0 if relative[2] == "m" else 3600.0)
+    clock = re.fullmatch(r"([01]?\d|2[0-3]):([0-5]\d)", text.strip())
+    if clock:
+        today = datetime.datetime.fromtimestamp(now).replace(hour=int(clock[1]), minute=int(clock[2]), second=0,
+                                                             microsecond=0)  # fmt: skip
+        at = today.timestamp()
+        return at if at > now else (today + datetime.timedelta(days=1)).timestamp()
+    try:
+        at = datetime.datetime.fromisoformat(text.strip()).timestamp()
+    except ValueError:
+        raise ValueError(f"--until {text!r}: give {UNTIL_FORMS}") from None
+    if at <= now:
+        raise ValueError(f"--until {text!r} has passed (now {datetime.datetime.fromtimestamp(now):%Y-%m-%dT%H:%M})")
+    return at
+
+
+def elapsed(folder) -> float:
+    """The wall-clock seconds (training and evaluation) a grid point's checkpoint holds; 0 without one."""
+    try:
+        state = json.loads((folder / "state.json").read_text())
+        return float(state["wall"]) + float(state.get("eval_wall", 0.0))
+    except (OSError, ValueError, KeyError):
+        return 0.0
+
+
+class Deadline:
+    """The deadline ``at`` (seconds since the epoch) of workers over the campaigns ``names`` in ``storage``."""
+
+    def __init__(self, at: float, names: list[str], storage: str | None) -> None:
+        self.at, self.names, self.storage = at, names, storage
+
+    def left(self) -> float:
+        return self.at - time.time()
+
+    def fitting(self, name: str, campaign: Campaign) -> Callable[[tuple[str, str, int]], bool]:
+        """Whether a grid point of ``campaign`` (study ``name``) is expected to end before the deadline: the runs'
+        times read once, for every point asked after."""
+        runs, progress, _, campaigns = collect(self.names, self.storage)
+        complete, extrapolated = run_times(runs, {}, campaigns), run_times(runs, progress, campaigns)
+
+        def fits(point: tuple[str, str, int]) -> bool:
+            key = (point[0], variant_label(campaign, point[1], campaigns))
+            walls = [times[1] for times in (time_of(complete, key), time_of(extrapolated, key)) if times is not None]
+            if not walls:
+                return True
+            return max(walls) - elapsed(campaign.checkpoint_folder(name, point)) <= self.left()
+
+        return fits
