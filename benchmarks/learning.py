@@ -10,7 +10,7 @@ thread each, an interrupted sweep resumed by the same command (the runs of dead 
 finished runs are written to ``<out>`` as JSON, and tasks, variants and seeds whose runs all have one are skipped
 (runs of other steps or evaluation settings in ``<out>`` are refused: give another ``--out``).
 
-    # SB3's defaults (docs/results-sb3-defaults.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
+    # SB3's defaults (docs/results-ppo-settings.md): Hopper-v5 and Walker2d-v5, 300k steps, 5 seeds
     python benchmarks/learning.py --env Hopper-v5 Walker2d-v5 --variants ppo pevfa-opr --seeds 0 1 2 3 4
     # the report only: Table-1 style markdown with rliable bootstrap CIs, and the learning curves
     python benchmarks/learning.py --report --out runs/learning --plot runs/learning.png

@@ -111,7 +111,7 @@ def test_docs_build_without_warnings(tmp_path):
     assert result.returncode == 0, result.stderr[-5000:]
     built = {path.stem for path in tmp_path.glob("*.html")}
     assert {"index", "install", "quickstart", "algorithm", "representations", "history", "zoo", "diagnostics",
-            "benchmarks", "api", "changelog", "results-sb3-defaults", "results-zoo-tuned",
+            "benchmarks", "api", "changelog", "results-ppo-settings",
             "results-paper-protocol"} <= built  # fmt: skip
     notes = {path.stem for path in (tmp_path / "notes").glob("*.html")}
     assert "index" in notes and {path.stem for path in (DOCS / "notes").glob("*.md")} <= notes
@@ -166,7 +166,7 @@ def with_includes(page: pathlib.Path) -> str:
 
 def test_results_pages_are_short():
     counts = {page.name: words(with_includes(page)) for page in sorted(DOCS.glob("results-*.md"))}
-    assert len(counts) == 3 and sum(counts.values()) <= RESULTS_MAX_WORDS, counts
+    assert 1 <= len(counts) <= 3 and sum(counts.values()) <= RESULTS_MAX_WORDS, counts  # no budget split over more pages
     assert words("| a | 12 ± 3 |\n|---|---|\n```bash\nnot counted\n```\n") == 3
 
 

@@ -269,7 +269,7 @@ CAMPAIGNS: dict[str, Campaign] = {
     "table1-local-generalization": Campaign(
         "paper", ("Walker2d-v5", "Hopper-v5"), ("opr-e2e+local-generalization",), tuple(range(3)), 1_000_000
     ),
-    # the representations at SB3's PPO defaults through rl-zoo3 (as docs/results-sb3-defaults.md), 300k steps
+    # the representations at SB3's PPO defaults through rl-zoo3 (as docs/results-ppo-settings.md), 300k steps
     "representations-300k": Campaign(
         "zoo",
         ("Hopper-v5", "Walker2d-v5"),
