@@ -959,17 +959,23 @@ def test_a_kept_exception_is_one_line_with_its_start_and_end():
 
 
 def test_a_stopped_worker_ignores_a_second_signal_while_it_marks_its_trial():
-    saved = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    """A second SIGINT or SIGTERM, or the deadline's alarm, cannot cut the marking short."""
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
+    saved = [signal.getsignal(stop) for stop in stops]
     try:
+        signal.signal(signal.SIGALRM, workers._stop)
+        signal.setitimer(signal.ITIMER_REAL, 0.2)  # a deadline due while the trial is marked
         with pytest.raises(KeyboardInterrupt):
             workers._stop()
-        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == workers._ignore
-        for stop in (signal.SIGTERM, signal.SIGINT):  # handled by a no-op: nothing raised, the process lives on
+        assert [signal.getsignal(stop) for stop in stops] == [workers._ignore] * 3
+        assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+        for stop in stops:  # handled by a no-op: nothing raised, the process lives on
             os.kill(os.getpid(), stop)
-        time.sleep(0.05)
+        time.sleep(0.3)
     finally:
-        signal.signal(signal.SIGINT, saved[0])
-        signal.signal(signal.SIGTERM, saved[1])
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        for stop, handler in zip(stops, saved):
+            signal.signal(stop, handler)
 
 
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
@@ -1241,6 +1247,8 @@ def test_until_reads_a_clock_time_a_date_time_and_a_duration_and_names_its_forms
     assert parse_until("2026-12-09T08:05", now) == datetime.datetime(2026, 12, 9, 8, 5).timestamp()
     with pytest.raises(ValueError, match="has passed"):
         parse_until("2026-12-07T10:00", now)
+    passed = datetime.datetime(2026, 12, 7, 10, 0).astimezone().isoformat()  # as run gives it to its workers
+    assert parse_until(passed, now, passed=True) == now - 1800  # a worker stops at once
     for wrong in ("25:00", "90m", "+1d", "tomorrow"):
         with pytest.raises(ValueError, match=r"give HH:MM .*, YYYY-MM-DDTHH:MM .*, \+90m or \+2\.5h"):
             parse_until(wrong, now)
@@ -1310,7 +1318,7 @@ def test_a_trial_running_at_the_deadline_stops_as_by_sigterm(tmp_path, monkeypat
     study, _ = storage.open_study("late", storage.storage_of("late", journal), tiny)
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
-        time.sleep(30)  # the deadline's alarm ends it
+        time.sleep(60)  # the deadline's alarm ends it
         raise AssertionError("not stopped")
 
     monkeypatch.setattr(workers, "train", train)
@@ -1318,17 +1326,18 @@ def test_a_trial_running_at_the_deadline_stops_as_by_sigterm(tmp_path, monkeypat
     start = time.monotonic()
     try:
         with pytest.raises(SystemExit) as stopped:
-            workers.work(["late"], journal, until=time.time() + 1.0)
+            workers.work(["late"], journal, until=time.time() + 5.0)  # the trial starts within 5 s, on a busy machine too
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         for s, handler in zip((signal.SIGINT, signal.SIGTERM, signal.SIGALRM), saved):
             signal.signal(s, handler)
-    assert stopped.value.code == workers.STOPPED and time.monotonic() - start < 10
+    assert stopped.value.code == workers.STOPPED and time.monotonic() - start < 20
     (trial,) = study.get_trials()
     assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
 
 
-def test_run_gives_its_workers_the_deadline_and_names_the_points_it_left(tmp_path, monkeypatch, capsys):
+def test_run_gives_its_workers_the_deadline_and_says_how_many_points_it_left(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(signal, "signal", lambda *args: None)  # run's handlers stay out of the test's process
     tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
     journal = str(tmp_path / "left.journal")
     storage.open_study("left", storage.storage_of("left", journal), tiny)
@@ -1346,9 +1355,24 @@ def test_run_gives_its_workers_the_deadline_and_names_the_points_it_left(tmp_pat
 
     assert parse_until(command[command.index("--until") + 1]) == pytest.approx(until, abs=1e-3)
     at = datetime.datetime.fromtimestamp(until)
-    assert f"2 grid points left for a later run: none expected to end before the deadline at {at:%Y-%m-%d %H:%M}" in (
-        capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert (
+        f"2 grid points left for a later run (the same command; a stopped trial goes on from its checkpoint): the "
+        f"deadline at {at:%Y-%m-%d %H:%M} near: none of them expected to end before it" in out
     )
+
+    # the deadline reached while a worker trained: its trial stopped, run says so and succeeds
+    monkeypatch.setattr(workers.subprocess, "Popen", lambda command: real_popen([sys.executable, "-c", stopping]))
+    stopping = f"import time; time.sleep(1); raise SystemExit({workers.STOPPED})"
+    until = time.time() + 0.5
+    workers.run(["left"], journal, 1, 1800.0, until=until)
+    at = datetime.datetime.fromtimestamp(until)
+    assert (
+        f"2 grid points left for a later run (the same command; a stopped trial goes on from its checkpoint): the "
+        f"deadline at {at:%Y-%m-%d %H:%M} reached" in capsys.readouterr().out
+    )
+    with pytest.raises(SystemExit, match="left: stopped; the same run command goes on"):  # stopped before it
+        workers.run(["left"], journal, 1, 1800.0, until=time.time() + 600)
 
 
 def test_a_deadline_reads_the_longer_of_complete_runs_and_a_running_trials_pace(tmp_path):

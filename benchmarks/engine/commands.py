@@ -65,7 +65,7 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     if args.until is not None and args.command == "status":
         parser.error("--until is an option of run and work")
     try:
-        until = None if args.until is None else parse_until(args.until)
+        until = None if args.until is None else parse_until(args.until, passed=args.command == "work")
     except ValueError as error:
         parser.error(str(error))
     given = None

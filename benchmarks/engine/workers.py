@@ -117,9 +117,11 @@ def _ignore(*_: Any) -> None:
 
 
 def _ignore_stops(exiting: bool = False) -> None:
-    """Further SIGINT and SIGTERM ignored; ``exiting``: by the OS (``SIG_IGN``), as Python's exit would put their
-    default action back where a Python handler is set, and a late signal would kill the process by it."""
-    for stop in (signal.SIGINT, signal.SIGTERM):
+    """Further SIGINT, SIGTERM and the deadline's alarm (SIGALRM, its timer cancelled) ignored; ``exiting``: by the
+    OS (``SIG_IGN``), as Python's exit would put their default action back where a Python handler is set, and a late
+    signal would kill the process by it."""
+    signal.setitimer(signal.ITIMER_REAL, 0)  # the deadline's alarm: it must not cut a stop short either
+    for stop in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM):
         signal.signal(stop, signal.SIG_IGN if exiting else _ignore)
 
 
@@ -257,7 +259,7 @@ def run(
     command = [sys.executable, str(SCRIPT), "work", "--campaign", *names]
     command += ["--stale-after", str(stale_after)]
     command += ["--storage", storage] if storage else []
-    command += ["--until", datetime.datetime.fromtimestamp(until).isoformat()] if until is not None else []
+    command += ["--until", datetime.datetime.fromtimestamp(until).astimezone().isoformat()] if until is not None else []
     processes = [subprocess.Popen(command) for _ in range(workers)]
 
     def stop(*_: Any) -> None:
@@ -279,18 +281,20 @@ def run(
         stop_workers(processes)
     codes = [process.wait() for process in processes]
     at = "" if until is None else f" at {datetime.datetime.fromtimestamp(until):%Y-%m-%d %H:%M}"
-    if codes and all(code == STOPPED for code in codes):
-        why = f"the deadline{at} reached" if until is not None and time.time() >= until else "stopped"
-        raise SystemExit(f"{' '.join(names)}: {why}; the same run command goes on (a stopped trial from its checkpoint)")
-    if any(codes):
+    reached = until is not None and time.time() >= until
+    if codes and STOPPED in codes and set(codes) <= {0, STOPPED} and not reached:
+        raise SystemExit(f"{' '.join(names)}: stopped; the same run command goes on (a stopped trial from its checkpoint)")
+    if any(code not in (0, STOPPED) for code in codes):
         raise SystemExit(f"{' '.join(names)}: workers exited with {codes}")
     unfinished = [f"{name}: {failed_text(study, campaign)}" for name, (study, campaign) in zip(names, studies)
                   if failed(study, campaign)]  # fmt: skip
     if unfinished:
         raise SystemExit("\n".join(unfinished))
-    left = sum(pending(study, campaign) for study, campaign in studies)
-    if left:  # the workers found nothing more that would end before the deadline
-        print(f"{left} grid points left for a later run: none expected to end before the deadline{at}", flush=True)
+    left = sum(len(campaign.grid) - done(study, campaign) for study, campaign in studies)
+    if left and until is not None:  # the deadline came, or nothing more was expected to end before it: a success
+        why = "reached" if reached else "near: none of them expected to end before it"
+        print(f"{left} grid points left for a later run (the same command; a stopped trial goes on from its "
+              f"checkpoint): the deadline{at} {why}", flush=True)  # fmt: skip
 
 
 def wait_any(processes: list[subprocess.Popen], seconds: float) -> None:
