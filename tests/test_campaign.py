@@ -724,6 +724,15 @@ def test_a_summarys_run_count_is_over_every_campaigns_grid(monkeypatch):
     monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [first, complete]))
     text = engine.report.summary(["one", "two"], None, "ppo")
     assert text.startswith("2 of 2 runs complete, 1,000 env steps per run. ") and "provisional" not in text
+    # a diagnostic's runs counted apart from the grid's that the table shows
+    diagnostic = definitions.Campaign("paper", ("A",), ("opr-e2e+local-generalization",), (0, 1), 1000, eval_freq=1000)
+    runs["A"]["opr-e2e+local-generalization"] = [run(150.0)]
+    monkeypatch.setattr(engine.report, "collect", lambda names, storage: (runs, {}, [], [first, complete, diagnostic]))
+    text = engine.report.summary(["one", "two", "three"], None, "ppo")
+    head = "2 of 2 runs complete (and 1 of 2 runs of the local-generalization diagnostic), 1,000 env steps per run"
+    assert text.startswith(head + " (provisional).")
+    runs["A"]["opr-e2e+local-generalization"].append(run(150.0))
+    assert engine.report.summary(["one", "two", "three"], None, "ppo").startswith(head.replace("1 of 2", "2 of 2") + ". ")
 
 
 def test_aggregates_resample_within_tasks_and_leave_out_what_a_ratio_cannot_compare(monkeypatch):

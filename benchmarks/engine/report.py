@@ -8,7 +8,7 @@ import numpy as np
 
 from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
 
-from .definitions import Campaign
+from .definitions import LOCAL_GENERALIZATION, Campaign
 from .figures import plot, plot_beside, plot_local_generalization
 from .results import Runs, collect, expected_duration
 from .tables import (
@@ -64,9 +64,25 @@ def protocol_label(campaigns: list[Campaign]) -> str:
     return "/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in campaigns}))
 
 
-def counted(runs: Runs, campaigns: list[Campaign]) -> tuple[int, int]:
-    """The runs complete and the runs of the campaigns' grids."""
-    return sum(len(rs) for bv in runs.values() for rs in bv.values()), sum(len(c.grid) for c in campaigns)
+def counted(runs: Runs, campaigns: list[Campaign], diagnostic: bool | None = None) -> tuple[int, int]:
+    """The runs complete and the runs of the campaigns' grids; ``diagnostic``: only the diagnostic variants' (True)
+    or only the others' (False)."""
+
+    def counts(variant: str) -> bool:
+        return diagnostic is None or (variant.rpartition(":")[2] in LOCAL_GENERALIZATION) == diagnostic
+
+    complete = sum(len(rs) for bv in runs.values() for v, rs in bv.items() if counts(v))
+    return complete, sum(len(c.tasks) * len(c.seeds) for c in campaigns for v in c.variants if counts(v))
+
+
+def runs_complete(runs: Runs, campaigns: list[Campaign]) -> tuple[str, bool]:
+    """The runs complete as the report says it ("64 of 90 runs complete", the diagnostic's apart), and whether all are."""
+    complete, total = counted(runs, campaigns, diagnostic=False)
+    text = f"{complete} of {total} runs complete"
+    diagnosed, planned = counted(runs, campaigns, diagnostic=True)
+    if planned:
+        text += f" (and {diagnosed} of {planned} runs of the local-generalization diagnostic)"
+    return text, complete + diagnosed == total + planned
 
 
 def target_of(runs: Runs, campaigns: list[Campaign], baseline: str) -> tuple[dict[str, Any] | None, list[str]]:
@@ -93,10 +109,9 @@ def summary(
     compared) against the baseline (``tables.compact``; beside it, per env step, ``beside_names``' protocol), the
     aggregates over tasks and the target's reading; ``cache``: as :func:`read`'s."""
     runs, _, _, campaigns = read(names, storage, cache)
-    complete, total = counted(runs, campaigns)
+    text, all_complete = runs_complete(runs, campaigns)
     steps = "/".join(f"{s:,}" for s in sorted({c.timesteps for c in campaigns}))
-    head = f"{complete} of {total} runs complete, {steps} env steps per run" + (" (provisional)." if complete < total
-                                                                                 else ".")  # fmt: skip
+    head = f"{text}, {steps} env steps per run" + ("." if all_complete else " (provisional).")
     spec, lines_of_target = target_of(runs, campaigns, baseline)
     variants = [v for v in compared_variants(runs) if v != baseline]
     if not runs or not variants:
@@ -131,8 +146,7 @@ def report(
     notes = list(notes)  # the cache's stay as read
     protocols = {c.protocol for c in campaigns}
     paper = len(protocols) == 1 and protocols <= set(PUBLISHED)
-    complete, total = counted(runs, campaigns)
-    lines = [f"Campaigns {', '.join(names)}: {complete} of {total} runs complete.", ""]
+    lines = [f"Campaigns {', '.join(names)}: {runs_complete(runs, campaigns)[0]}.", ""]
     if not runs:
         return "\n".join(lines + [f"- {note}" for note in notes])
     commits = sorted({r["commit"] for bv in runs.values() for rs in bv.values() for r in rs})
