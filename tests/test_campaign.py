@@ -852,6 +852,16 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
     np.testing.assert_allclose(figures.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
+    # iterations of whole episodes, of varying size: by env steps in bins of the median iteration size (2000), a run's
+    # iterations in one bin averaged, to the end of the shorter run (not to the fewer iterations' count)
+    ones = [1.0] * 5
+    short_first = {"timesteps": [500.0, 1000.0, 3000.0, 5000.0, 7000.0], "pevfa_before": [2.0, 0.5, 4.0, 1.0, 1.0],
+                   "vfa_before": ones, "pevfa_after": ones, "vfa_after": ones}  # fmt: skip
+    even = {"timesteps": [2000.0, 4000.0, 6000.0, 7500.0], "pevfa_before": [1.0, 1.0, 4.0, 0.25],
+            "vfa_before": ones[:4], "pevfa_after": ones[:4], "vfa_after": ones[:4]}  # fmt: skip
+    curves = figures.local_generalization_curves([short_first, even], 1)
+    np.testing.assert_allclose(curves["steps"], [750.0, 2500.0, 4500.0, 6875.0])
+    np.testing.assert_allclose(curves["before"], [1.0, 2.0, 1.0, 1.0])  # bins: (2 * 0.5) ** 0.5; 4 and 1; 1, 1; 4 * 0.25
     # off-policy runs by snapshot: a resumed one lacks windows 1 and 2, and its window 3 goes with window 3
     full = {
         **by_hand,

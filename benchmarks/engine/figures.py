@@ -12,38 +12,40 @@ from .tables import compared_variants, diagnosed, table1_order
 
 
 def local_generalization_curves(series: list[dict[str, list[float]]], window: int = 25) -> dict[str, np.ndarray]:
-    """A task's diagnostic runs, per iteration (runs aligned by iteration; off-policy ones by snapshot, ``policy_id``:
-    a resumed run lacks the windows open at its checkpoint, an unscored window is missing too): the env steps and,
-    before and after the critic update, the PeVFA's error over the conventional critic's, as a geometric mean over
-    runs smoothed by a centered moving geometric mean over ``window`` iterations (non-finite errors left out)."""
+    """A task's diagnostic runs over training, lined up by snapshot where they are off-policy (``policy_id``: a resumed
+    run lacks the windows open at its checkpoint, an unscored window is missing too), else by env steps in bins of the
+    runs' median iteration size (iterations of whole episodes vary in size; a run's iterations in one bin averaged),
+    up to the shortest run's end: the env steps and, before and after the critic update, the PeVFA's error over the
+    conventional critic's, as a geometric mean over runs smoothed by a centered moving geometric mean over ``window``
+    points (non-finite errors left out)."""
     if all("policy_id" in s for s in series):  # the snapshot k of every run: the same gradient step, the same env step
         keys = [[int(k) for k in s["policy_id"]] for s in series]
     else:
-        keys = [list(range(len(s["timesteps"]))) for s in series]
+        size = max(1.0, float(np.median(np.concatenate([np.diff([0.0, *s["timesteps"]]) for s in series]))))
+        keys = [[int(t // size) for t in s["timesteps"]] for s in series]
     end = min(max(k) for k in keys)
     grid = sorted({k for ks in keys for k in ks if k <= end})
     position = {k: i for i, k in enumerate(grid)}
     n = len(grid)
 
-    def aligned(s: dict, ks: list[int], key: str) -> np.ndarray:
-        values = np.full(n, np.nan)
-        for k, value in zip(ks, s[key]):
-            if k in position:
-                values[position[k]] = value
-        return values
+    def aligned(values: np.ndarray, ks: list[int]) -> np.ndarray:
+        """A run's finite values per point of the grid, averaged where several fall on one (NaN where none)."""
+        sums, counts = np.zeros(n), np.zeros(n)
+        for k, value in zip(ks, values):
+            if k in position and np.isfinite(value):
+                sums[position[k]] += value
+                counts[position[k]] += 1
+        return np.divide(sums, counts, out=np.full(n, np.nan), where=counts > 0)
 
-    steps = np.array([aligned(s, ks, "timesteps") for s, ks in zip(series, keys)])
-    known = np.isfinite(steps)
-    curves = {"steps": steps[known.argmax(axis=0), np.arange(n)]}  # the first run's that has the iteration
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the mean of an all-NaN slice is NaN
+        curves = {"steps": np.nanmean([aligned(np.asarray(s["timesteps"], float), ks) for s, ks in zip(series, keys)], 0)}
         for when in ("before", "after"):
-            logs = np.log(np.array([aligned(s, ks, f"pevfa_{when}") / aligned(s, ks, f"vfa_{when}")
-                                    for s, ks in zip(series, keys)]))  # fmt: skip
-            logs[~np.isfinite(logs)] = np.nan
-            per_iteration = np.nanmean(logs, axis=0)
-            first = [i - window // 2 for i in range(n)]  # each window: ``window`` iterations around i, cut at the ends
-            curves[when] = np.exp([np.nanmean(per_iteration[max(0, f) : f + window]) for f in first])
+            logs = np.array([aligned(np.log(np.divide(s[f"pevfa_{when}"], s[f"vfa_{when}"])), ks)
+                             for s, ks in zip(series, keys)])  # fmt: skip
+            per_point = np.nanmean(logs, axis=0)
+            first = [i - window // 2 for i in range(n)]  # each window: ``window`` points around i, cut at the ends
+            curves[when] = np.exp([np.nanmean(per_point[max(0, f) : f + window]) for f in first])
     return curves
 
 
