@@ -229,6 +229,11 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     failed = optuna.create_trial(state=TrialState.FAIL)
     assert results.trial_outcome(failed, database=True) == " (interrupted: worker gone)"
     assert results.trial_outcome(failed) == " (failed: no reason kept, tried again)"
+    progress = {"progress": {"steps": 1_020_000, "cpu_s": 450.0, "wall_s": 500.0}}  # at its last evaluation
+    running = optuna.create_trial(state=TrialState.RUNNING, user_attrs=progress)
+    assert results.trial_outcome(running) == " (last evaluation at 1,020,000 env steps, 7.5 CPU-min)"
+    stopped = optuna.create_trial(state=TrialState.FAIL, user_attrs={**progress, "interrupted": "stopped"})
+    assert results.trial_outcome(stopped) == " (interrupted: stopped; last evaluation at 1,020,000 env steps, 7.5 CPU-min)"
     study.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 4},
                                         distributions=distributions))  # fmt: skip
     assert storage.recover(study, tiny) == [13] and not storage.raised(study.trials[13])

@@ -154,15 +154,21 @@ def status_of(name: str, storage: str | None) -> None:
 
 
 def trial_outcome(trial: Any, database: bool = False) -> str:
-    """What the status adds to a trial's state: its max average return, or why a failed one stopped: interrupted (the
-    worker was stopped or died, and the grid point is tried again), its training raised (with the exception), or,
-    without a reason kept, a dead worker that Optuna's heartbeat failed (a ``database``) or an unknown one."""
+    """What the status adds to a trial's state: its max average return, a running one's progress (env steps and
+    training CPU time at its last evaluation), or why a failed one stopped: interrupted (the worker was stopped or
+    died, and the grid point is tried again; where, if it reached an evaluation), its training raised (with the
+    exception), or, without a reason kept, a dead worker that Optuna's heartbeat failed (a ``database``) or an unknown
+    one."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
+    progress = trial.user_attrs.get("progress")
+    at = f"last evaluation at {progress['steps']:,} env steps, {progress['cpu_s'] / 60:.1f} CPU-min" if progress else ""
+    if trial.state == TrialState.RUNNING and progress:
+        return f" ({at})"
     if trial.state != TrialState.FAIL:
         return ""
     if trial.user_attrs.get("interrupted"):
-        return f" (interrupted: {trial.user_attrs['interrupted']})"
+        return f" (interrupted: {trial.user_attrs['interrupted']}{'; ' + at if at else ''})"
     if "error" in trial.user_attrs:
         return f" (raised {trial.user_attrs['error']})"
     return " (interrupted: worker gone)" if database else " (failed: no reason kept, tried again)"
