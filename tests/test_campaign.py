@@ -234,6 +234,11 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     assert results.trial_outcome(running) == " (last evaluation at 1,020,000 env steps, 7.5 CPU-min)"
     stopped = optuna.create_trial(state=TrialState.FAIL, user_attrs={**progress, "interrupted": "stopped"})
     assert results.trial_outcome(stopped) == " (interrupted: stopped; last evaluation at 1,020,000 env steps, 7.5 CPU-min)"
+    done = optuna.create_trial(state=TrialState.COMPLETE, value=251.4, user_attrs=progress)  # complete runs keep theirs
+    assert results.trial_outcome(done) == " (max average return 251)"
+    assert results.trial_outcome(optuna.create_trial(state=TrialState.RUNNING)) == ""  # before its first evaluation
+    raised = optuna.create_trial(state=TrialState.FAIL, user_attrs={**progress, "error": "RuntimeError: a NaN"})
+    assert results.trial_outcome(raised) == " (raised RuntimeError: a NaN)"
     study.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 4},
                                         distributions=distributions))  # fmt: skip
     assert storage.recover(study, tiny) == [13] and not storage.raised(study.trials[13])
@@ -857,16 +862,17 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     np.testing.assert_allclose(curves["after"][0], (1 / 3) ** 0.5)  # mean of log(1/3) and log(1), iterations 1-2
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
     np.testing.assert_allclose(figures.local_generalization_curves([other], 2)["before"][1], 1.0)  # 2 and 0.5
-    # iterations of whole episodes, of varying size: by env steps in bins of the median iteration size (2000), a run's
-    # iterations in one bin averaged, to the end of the shorter run (not to the fewer iterations' count)
+    # iterations of whole episodes, of varying size: on a grid of env steps every median iteration size (2000), each
+    # run's log-ratio interpolated between its iterations, to the end of the shorter run (the longer run's 9000 left out)
     ones = [1.0] * 5
     short_first = {"timesteps": [500.0, 1000.0, 3000.0, 5000.0, 7000.0], "pevfa_before": [2.0, 0.5, 4.0, 1.0, 1.0],
                    "vfa_before": ones, "pevfa_after": ones, "vfa_after": ones}  # fmt: skip
-    even = {"timesteps": [2000.0, 4000.0, 6000.0, 7500.0], "pevfa_before": [1.0, 1.0, 4.0, 0.25],
-            "vfa_before": ones[:4], "pevfa_after": ones[:4], "vfa_after": ones[:4]}  # fmt: skip
+    even = {"timesteps": [2000.0, 4000.0, 6000.0, 7500.0, 9000.0], "pevfa_before": [1.0, 1.0, 4.0, 0.25, 8.0],
+            "vfa_before": ones, "pevfa_after": ones, "vfa_after": ones}  # fmt: skip
     curves = figures.local_generalization_curves([short_first, even], 1)
-    np.testing.assert_allclose(curves["steps"], [750.0, 2500.0, 4500.0, 6875.0])
-    np.testing.assert_allclose(curves["before"], [1.0, 2.0, 1.0, 1.0])  # bins: (2 * 0.5) ** 0.5; 4 and 1; 1, 1; 4 * 0.25
+    np.testing.assert_allclose(curves["steps"], [2000.0, 4000.0, 6000.0])
+    # the first run at 2000: halfway from 0.5 to 4 in logs (2 ** 0.5); at 4000: halfway from 4 to 1 (2); at 6000: 1
+    np.testing.assert_allclose(curves["before"], [(2**0.5 * 1.0) ** 0.5, (2.0 * 1.0) ** 0.5, (1.0 * 4.0) ** 0.5])
     # off-policy runs by snapshot: a resumed one lacks windows 1 and 2, and its window 3 goes with window 3
     full = {
         **by_hand,

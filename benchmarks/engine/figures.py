@@ -12,41 +12,55 @@ from .tables import compared_variants, diagnosed, table1_order
 
 
 def local_generalization_curves(series: list[dict[str, list[float]]], window: int = 25) -> dict[str, np.ndarray]:
-    """A task's diagnostic runs over training, lined up by snapshot where they are off-policy (``policy_id``: a resumed
-    run lacks the windows open at its checkpoint, an unscored window is missing too), else by env steps in bins of the
-    runs' median iteration size (iterations of whole episodes vary in size; a run's iterations in one bin averaged),
-    up to the shortest run's end: the env steps and, before and after the critic update, the PeVFA's error over the
-    conventional critic's, as a geometric mean over runs smoothed by a centered moving geometric mean over ``window``
-    points (non-finite errors left out)."""
+    """A task's diagnostic runs over training: the env steps and, before and after the critic update, the PeVFA's
+    error over the conventional critic's, as a geometric mean over runs smoothed by a centered moving geometric mean
+    over ``window`` points (non-finite errors left out). Off-policy runs line up by snapshot (``policy_id``: a resumed
+    run lacks the windows open at its checkpoint, an unscored window is missing too); on-policy ones on a grid of env
+    steps, every median iteration size up to the shortest run's end, each run's log-ratio interpolated linearly
+    between its iterations (iterations of whole episodes vary in size: each point has every run)."""
+    logs: dict[str, np.ndarray] = {}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = {when: [np.log(np.divide(s[f"pevfa_{when}"], s[f"vfa_{when}"])) for s in series]
+                  for when in ("before", "after")}  # fmt: skip
     if all("policy_id" in s for s in series):  # the snapshot k of every run: the same gradient step, the same env step
         keys = [[int(k) for k in s["policy_id"]] for s in series]
+        grid = sorted({k for ks in keys for k in ks if k <= min(max(k) for k in keys)})
+        steps = np.nanmean([_on_grid(np.asarray(s["timesteps"], float), ks, grid) for s, ks in zip(series, keys)], 0)
+        for when, values in ratios.items():
+            logs[when] = np.array([_on_grid(v, ks, grid) for v, ks in zip(values, keys)])
     else:
         size = max(1.0, float(np.median(np.concatenate([np.diff([0.0, *s["timesteps"]]) for s in series]))))
-        keys = [[int(t // size) for t in s["timesteps"]] for s in series]
-    end = min(max(k) for k in keys)
-    grid = sorted({k for ks in keys for k in ks if k <= end})
-    position = {k: i for i, k in enumerate(grid)}
-    n = len(grid)
-
-    def aligned(values: np.ndarray, ks: list[int]) -> np.ndarray:
-        """A run's finite values per point of the grid, averaged where several fall on one (NaN where none)."""
-        sums, counts = np.zeros(n), np.zeros(n)
-        for k, value in zip(ks, values):
-            if k in position and np.isfinite(value):
-                sums[position[k]] += value
-                counts[position[k]] += 1
-        return np.divide(sums, counts, out=np.full(n, np.nan), where=counts > 0)
-
-    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        steps = np.arange(1, int(min(s["timesteps"][-1] for s in series) // size) + 1) * size
+        for when, values in ratios.items():
+            logs[when] = np.array([_interpolated(np.asarray(s["timesteps"], float), v, steps)
+                                   for s, v in zip(series, values)])  # fmt: skip
+    curves = {"steps": steps}
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the mean of an all-NaN slice is NaN
-        curves = {"steps": np.nanmean([aligned(np.asarray(s["timesteps"], float), ks) for s, ks in zip(series, keys)], 0)}
-        for when in ("before", "after"):
-            logs = np.array([aligned(np.log(np.divide(s[f"pevfa_{when}"], s[f"vfa_{when}"])), ks)
-                             for s, ks in zip(series, keys)])  # fmt: skip
-            per_point = np.nanmean(logs, axis=0)
-            first = [i - window // 2 for i in range(n)]  # each window: ``window`` points around i, cut at the ends
+        for when, per_run in logs.items():
+            per_point = np.nanmean(per_run, axis=0)
+            first = [i - window // 2 for i in range(len(steps))]  # each window: ``window`` points around i, cut at the ends
             curves[when] = np.exp([np.nanmean(per_point[max(0, f) : f + window]) for f in first])
     return curves
+
+
+def _on_grid(values: np.ndarray, keys: list[int], grid: list[int]) -> np.ndarray:
+    """A run's finite values at the grid's keys, averaged where several have one key (NaN where none)."""
+    position = {k: i for i, k in enumerate(grid)}
+    sums, counts = np.zeros(len(grid)), np.zeros(len(grid))
+    for k, value in zip(keys, values):
+        if k in position and np.isfinite(value):
+            sums[position[k]] += value
+            counts[position[k]] += 1
+    return np.divide(sums, counts, out=np.full(len(grid), np.nan), where=counts > 0)
+
+
+def _interpolated(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """A run's finite values interpolated linearly at the grid's env steps (NaN outside its scored iterations)."""
+    finite = np.isfinite(values)
+    if not finite.any():
+        return np.full(len(grid), np.nan)
+    return np.interp(grid, steps[finite], values[finite], left=np.nan, right=np.nan)
 
 
 def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:

@@ -122,7 +122,7 @@ def summary(
     if beside_names:
         other, _, _, others = read(beside_names, storage, cache)
         label = protocol_label(others)
-        done, planned = counted(other, others)
+        done, planned = counted(other, others, diagnostic=False)  # the column shows the grid's variants only
         apart = [f"The {label}'s column: {done} of {planned} runs complete (provisional).", ""] if done < planned else []
     lines += [*compact(runs, baseline, variant, other, label), "", *apart, *aggregates(runs, baseline)[0], ""]
     lines += [*left_out(runs, baseline), ""]

@@ -161,9 +161,10 @@ def trial_outcome(trial: Any, database: bool = False) -> str:
     one."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
-    progress = trial.user_attrs.get("progress")
-    at = f"last evaluation at {progress['steps']:,} env steps, {progress['cpu_s'] / 60:.1f} CPU-min" if progress else ""
-    if trial.state == TrialState.RUNNING and progress:
+    progress = trial.user_attrs.get("progress") or {}
+    at = (f"last evaluation at {progress['steps']:,} env steps, {progress['cpu_s'] / 60:.1f} CPU-min"
+          if {"steps", "cpu_s"} <= progress.keys() else "")  # fmt: skip
+    if trial.state == TrialState.RUNNING and at:
         return f" ({at})"
     if trial.state != TrialState.FAIL:
         return ""
@@ -171,4 +172,4 @@ def trial_outcome(trial: Any, database: bool = False) -> str:
         return f" (interrupted: {trial.user_attrs['interrupted']}{'; ' + at if at else ''})"
     if "error" in trial.user_attrs:
         return f" (raised {trial.user_attrs['error']})"
-    return " (interrupted: worker gone)" if database else " (failed: no reason kept, tried again)"
+    return f" (interrupted: worker gone{'; ' + at if at else ''})" if database else " (failed: no reason kept, tried again)"
