@@ -125,7 +125,8 @@ def summary(
         done, planned = counted(other, others, diagnostic=False)  # the column shows the grid's variants only
         apart = [f"The {label}'s column: {done} of {planned} runs complete (provisional).", ""] if done < planned else []
     lines += [*compact(runs, baseline, variant, other, label), "", *apart, *aggregates(runs, baseline)[0], ""]
-    lines += [*left_out(runs, baseline), ""]
+    omitted = left_out(runs, baseline)
+    lines += [*omitted, ""] if omitted else []
     if lines_of_target:
         lines += [f"Target ({target_wording(spec, baseline)}):", "", *lines_of_target]  # type: ignore[arg-type]
     return "\n".join(lines).rstrip() + "\n"
