@@ -1429,3 +1429,18 @@ def test_a_deadline_reads_the_longer_of_complete_runs_and_a_running_trials_pace(
     for task, variant, wall in ((TASK, "ppo", 100.0), (TASK, "opr-e2e", 200.0), ("Pendulum-v1", "ppo", 100.0)):
         _completed(study, tiny, (task, variant, 0), wall)
     assert not fits(50, point) and not fits(190, point) and fits(210, point)  # 100 s x 2: ppo's time, opr-e2e's ratio
+
+
+def test_run_until_stops_a_real_training_at_the_deadline_and_succeeds(tmp_path):
+    """The command line end to end: the deadline reaches the worker process, which stops its training (interrupted,
+    to go on from its checkpoint) and exits; run succeeds and says how many grid points are left."""
+    journal = tmp_path / "until.journal"
+    command = [sys.executable, str(ROOT / "benchmarks" / "campaign.py"), "run", "--campaign", "until", "--storage",
+               str(journal), "--workers", "1", "--until", "+0.25m", *_definition("ppo", timesteps=10_000_000)]  # fmt: skip
+    start = time.monotonic()
+    result = subprocess.run(command, capture_output=True, text=True, timeout=150)  # no stop: 10M steps time out
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert 15 <= time.monotonic() - start < 120 and "Traceback" not in result.stderr
+    assert "1 grid points left for a later run" in result.stdout and "reached" in result.stdout, result.stdout[-2000:]
+    (trial,) = _study("until", journal).get_trials()
+    assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
