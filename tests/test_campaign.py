@@ -1444,3 +1444,25 @@ def test_run_until_stops_a_real_training_at_the_deadline_and_succeeds(tmp_path):
     assert "1 grid points left for a later run" in result.stdout and "reached" in result.stdout, result.stdout[-2000:]
     (trial,) = _study("until", journal).get_trials()
     assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
+
+
+def test_a_deadline_reads_the_storage_at_most_once_a_minute(tmp_path, monkeypatch):
+    """A worker with nothing that fits looks again every few seconds over every campaign: the runs' times it read
+    serve for a minute, then are read again."""
+    from engine import deadline as deadline_module
+
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    journal = str(tmp_path / "reads.journal")
+    storage.open_study("reads", storage.storage_of("reads", journal), tiny)
+    reads, clock = [], [1000.0]
+    monkeypatch.setattr(deadline_module, "collect", lambda *args: reads.append(args) or results.collect(*args))
+    monkeypatch.setattr(deadline_module.time, "monotonic", lambda: clock[0])
+    deadline = deadline_module.Deadline(time.time() + 600, ["reads"], journal)
+    for _ in range(5):
+        assert deadline.fitting("reads", tiny)((TASK, "ppo", 0))
+    clock[0] += deadline_module.REREAD_AFTER - 1
+    deadline.fitting("reads", tiny)
+    assert len(reads) == 1
+    clock[0] += 2
+    deadline.fitting("reads", tiny)
+    assert len(reads) == 2

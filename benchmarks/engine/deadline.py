@@ -12,11 +12,17 @@ import re
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from .definitions import Campaign
 from .results import collect, run_times, time_of, variant_label
 
+#: (CPU, wall-clock) seconds of a run per task and variant label
+Times = dict[tuple[str, str], np.ndarray]
 #: The forms ``--until`` takes
 UNTIL_FORMS = "HH:MM (the next such local time), YYYY-MM-DDTHH:MM (local), +90m or +2.5h (from now)"
+#: Seconds a worker keeps the runs' times it read (a worker with nothing that fits looks again every few seconds)
+REREAD_AFTER = 60.0
 
 
 def parse_until(text: str, now: float | None = None, passed: bool = False) -> float:
@@ -55,15 +61,22 @@ class Deadline:
 
     def __init__(self, at: float, names: list[str], storage: str | None) -> None:
         self.at, self.names, self.storage = at, names, storage
+        self._read: tuple[float, Times, Times, list[Campaign]] | None = None
 
     def left(self) -> float:
         return self.at - time.time()
 
+    def times(self) -> tuple[Times, Times, list[Campaign]]:
+        """The runs' times from complete runs alone and with running trials' pace, and the campaigns, read from the
+        storage at most every ``REREAD_AFTER`` seconds."""
+        if self._read is None or time.monotonic() - self._read[0] > REREAD_AFTER:
+            runs, progress, _, campaigns = collect(self.names, self.storage)
+            self._read = (time.monotonic(), run_times(runs, {}, campaigns), run_times(runs, progress, campaigns), campaigns)
+        return self._read[1:]
+
     def fitting(self, name: str, campaign: Campaign) -> Callable[[tuple[str, str, int]], bool]:
-        """Whether a grid point of ``campaign`` (study ``name``) is expected to end before the deadline: the runs'
-        times read once, for every point asked after."""
-        runs, progress, _, campaigns = collect(self.names, self.storage)
-        complete, extrapolated = run_times(runs, {}, campaigns), run_times(runs, progress, campaigns)
+        """Whether a grid point of ``campaign`` (study ``name``) is expected to end before the deadline."""
+        complete, extrapolated, campaigns = self.times()
 
         def fits(point: tuple[str, str, int]) -> bool:
             key = (point[0], variant_label(campaign, point[1], campaigns))
