@@ -1408,24 +1408,27 @@ def test_run_gives_its_workers_the_deadline_and_says_how_many_points_it_left(tmp
 def test_a_deadline_reads_the_longer_of_complete_runs_and_a_running_trials_pace(tmp_path):
     """A running trial's pace (its first steps, faster than a whole run's) does not shorten the time that complete
     runs give (here another variant's on the task, scaled by the two variants' ratio elsewhere); it counts where no
-    complete run tells the time; a point with no estimate at all is taken."""
+    complete run tells the time; a point with no estimate counts as long as the longest run known, and is taken where
+    no run is known."""
     from engine.deadline import Deadline
 
     tiny = definitions.Campaign("paper", (TASK, "Pendulum-v1"), ("ppo", "opr-e2e"), (0, 1, 2), 4000, 2000, 2)
     journal = str(tmp_path / "pace.journal")
     study, _ = storage.open_study("pace", storage.storage_of("pace", journal), tiny)
+    point = ("Pendulum-v1", "opr-e2e", 2)
+
+    def fits(left: float, point: tuple[str, str, int]) -> bool:
+        return Deadline(time.time() + left, ["pace"], journal).fitting("pace", tiny)(point)
+
+    assert fits(1, point)  # no run known at all
     distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
     progress = {"steps": 2000, "cpu_s": 10.0, "wall_s": 10.0}  # 10 s for half its steps: 20 s a run by its pace
     params = {"task": "Pendulum-v1", "variant": "opr-e2e", "seed": 1}
     study.add_trial(optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions,
                                         user_attrs={"progress": progress}))  # fmt: skip
-
-    def fits(left: float, point: tuple[str, str, int]) -> bool:
-        return Deadline(time.time() + left, ["pace"], journal).fitting("pace", tiny)(point)
-
-    point = ("Pendulum-v1", "opr-e2e", 2)
     assert fits(50, point) and not fits(15, point)  # by the pace alone
-    assert fits(1, (TASK, "ppo", 2))  # no run of the variant, nor of another variant on the task
+    # no run of the variant, nor of another variant on the task: as long as the longest run known (20 s)
+    assert fits(25, (TASK, "ppo", 2)) and not fits(15, (TASK, "ppo", 2))
     for task, variant, wall in ((TASK, "ppo", 100.0), (TASK, "opr-e2e", 200.0), ("Pendulum-v1", "ppo", 100.0)):
         _completed(study, tiny, (task, variant, 0), wall)
     assert not fits(50, point) and not fits(190, point) and fits(210, point)  # 100 s x 2: ppo's time, opr-e2e's ratio

@@ -4,7 +4,8 @@ checkpoint has done, ends before the deadline, and stops a trial still running a
 trial marked interrupted, enqueued again by the next ``run``, going on from its checkpoint where the machine keeps it).
 A run's expected time is the longer of the status's two estimates over the campaigns the workers were given: from
 complete runs alone, and with running trials' pace (:func:`~engine.results.run_times`,
-:func:`~engine.results.scaled_time`; a run's first steps go faster than its whole); a point with no estimate is taken."""
+:func:`~engine.results.scaled_time`; a run's first steps go faster than its whole); a point with no estimate counts
+as long as the longest run known (of another campaign, protocol or algorithm), and is taken where no run is known."""
 
 import datetime
 import json
@@ -77,12 +78,14 @@ class Deadline:
     def fitting(self, name: str, campaign: Campaign) -> Callable[[tuple[str, str, int]], bool]:
         """Whether a grid point of ``campaign`` (study ``name``) is expected to end before the deadline."""
         complete, extrapolated, campaigns = self.times()
+        longest = max((times[1] for times in (*complete.values(), *extrapolated.values())), default=None)
 
         def fits(point: tuple[str, str, int]) -> bool:
             key = (point[0], variant_label(campaign, point[1], campaigns))
             walls = [times[1] for times in (time_of(complete, key), time_of(extrapolated, key)) if times is not None]
-            if not walls:
+            if not walls and longest is None:
                 return True
-            return max(walls) - elapsed(campaign.checkpoint_folder(name, point)) <= self.left()
+            expected = max(walls) if walls else longest  # no estimate: as long as the longest run known
+            return expected - elapsed(campaign.checkpoint_folder(name, point)) <= self.left()
 
         return fits
