@@ -720,6 +720,10 @@ def test_the_speed_tables_cpu_minutes_are_training_minutes():
 
 
 def test_a_summarys_run_count_is_over_every_campaigns_grid(monkeypatch):
+    # a diagnostic variant by name, and by its report label where campaigns mix protocols
+    assert definitions.is_diagnostic("opr-e2e+local-generalization")
+    assert definitions.is_diagnostic("authors:opr-e2e+local-generalization") and not definitions.is_diagnostic("authors:opr")
+
     def run(value: float) -> dict:
         return {"max_average_return": value, "cpu_seconds": 2.0, "steps_per_cpu_second": 1.0,
                 "steps_per_wall_second": 1.0, "curve": {"mean": [value], "cpu_s": [1.0], "steps": [1000]}}  # fmt: skip
@@ -884,6 +888,13 @@ def test_local_generalization_diagnostic_in_a_trial_and_the_report():
     curves = figures.local_generalization_curves([resumed, full], 1)
     assert curves["steps"].tolist() == [1.0, 2.0, 3.0, 4.0]
     np.testing.assert_allclose(curves["before"], [1.0, 1.0, 4.0, 4.0])  # ratios: (0.5 * 2) ** 0.5, 1, 4, (8 * 2) ** 0.5
+    # the longer off-policy run's snapshot 4 is past the shorter one's end: left out
+    longer = {key: [*values, values[-1]] for key, values in full.items()} | {"policy_id": [0.0, 1.0, 2.0, 3.0, 4.0]}
+    assert len(figures.local_generalization_curves([resumed, longer], 1)["steps"]) == 4
+    # an unscored iteration between two scored ones: interpolated over (log 1 and log 4 give 2), not a gap
+    gap = {"timesteps": [1.0, 2.0, 3.0], "pevfa_before": [1.0, np.nan, 4.0], "vfa_before": [1.0] * 3,
+           "pevfa_after": [1.0] * 3, "vfa_after": [1.0] * 3}  # fmt: skip
+    np.testing.assert_allclose(figures.local_generalization_curves([gap], 1)["before"], [1.0, 2.0, 4.0])
     # a run that went on from a checkpoint went on with its conventional critic: in the diagnostic; one without a
     # scored iteration is not
     resumed = {"local_generalization": {**other, "pevfa_before": [4.0, 1.0, 3.0, 0.5]}, "resumed_from": 2000,
@@ -1459,7 +1470,8 @@ def test_a_deadline_reads_the_storage_at_most_once_a_minute(tmp_path, monkeypatc
     storage.open_study("reads", storage.storage_of("reads", journal), tiny)
     reads, clock = [], [1000.0]
     monkeypatch.setattr(deadline_module, "collect", lambda *args: reads.append(args) or results.collect(*args))
-    monkeypatch.setattr(deadline_module.time, "monotonic", lambda: clock[0])
+    clock_only_here = types.SimpleNamespace(time=time.time, monotonic=lambda: clock[0])  # not the process's clock
+    monkeypatch.setattr(deadline_module, "time", clock_only_here)
     deadline = deadline_module.Deadline(time.time() + 600, ["reads"], journal)
     for _ in range(5):
         assert deadline.fitting("reads", tiny)((TASK, "ppo", 0))

@@ -155,6 +155,11 @@ ENV_MAKERS = {"authors": make_authors_env}
 LOCAL_GENERALIZATION = {"opr-e2e+local-generalization": dict(net_arch=(128, 128)), "opr+local-generalization": {}}
 
 
+def is_diagnostic(variant: str) -> bool:
+    """Whether a variant (or its report label, ``protocol:variant``) runs a diagnostic (``LOCAL_GENERALIZATION``)."""
+    return variant.rpartition(":")[2] in LOCAL_GENERALIZATION
+
+
 @dataclasses.dataclass(frozen=True)
 class Campaign:
     """A grid of trainings: every task x variant x seed, ``timesteps`` each, evaluated every ``eval_freq`` steps

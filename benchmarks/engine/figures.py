@@ -24,7 +24,8 @@ def local_generalization_curves(series: list[dict[str, list[float]]], window: in
                   for when in ("before", "after")}  # fmt: skip
     if all("policy_id" in s for s in series):  # the snapshot k of every run: the same gradient step, the same env step
         keys = [[int(k) for k in s["policy_id"]] for s in series]
-        grid = sorted({k for ks in keys for k in ks if k <= min(max(k) for k in keys)})
+        end = min(max(ks) for ks in keys)
+        grid = sorted({k for ks in keys for k in ks if k <= end})
         steps = np.nanmean([_on_grid(np.asarray(s["timesteps"], float), ks, grid) for s, ks in zip(series, keys)], 0)
         for when, values in ratios.items():
             logs[when] = np.array([_on_grid(v, ks, grid) for v, ks in zip(values, keys)])

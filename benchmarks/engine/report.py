@@ -8,7 +8,7 @@ import numpy as np
 
 from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
 
-from .definitions import LOCAL_GENERALIZATION, Campaign
+from .definitions import Campaign, is_diagnostic
 from .figures import plot, plot_beside, plot_local_generalization
 from .results import Runs, collect, expected_duration
 from .tables import (
@@ -64,20 +64,15 @@ def protocol_label(campaigns: list[Campaign]) -> str:
     return "/".join(sorted({PROTOCOL_NAMES.get(c.protocol, f"{c.protocol} protocol") for c in campaigns}))
 
 
-def counted(runs: Runs, campaigns: list[Campaign], diagnostic: bool | None = None) -> tuple[int, int]:
-    """The runs complete and the runs of the campaigns' grids; ``diagnostic``: only the diagnostic variants' (True)
-    or only the others' (False)."""
-
-    def counts(variant: str) -> bool:
-        return diagnostic is None or (variant.rpartition(":")[2] in LOCAL_GENERALIZATION) == diagnostic
-
-    complete = sum(len(rs) for bv in runs.values() for v, rs in bv.items() if counts(v))
-    return complete, sum(len(c.tasks) * len(c.seeds) for c in campaigns for v in c.variants if counts(v))
+def counted(runs: Runs, campaigns: list[Campaign], diagnostic: bool = False) -> tuple[int, int]:
+    """The runs complete and the runs of the campaigns' grids, of the diagnostic variants or of the others."""
+    complete = sum(len(rs) for bv in runs.values() for v, rs in bv.items() if is_diagnostic(v) == diagnostic)
+    return complete, sum(len(c.tasks) * len(c.seeds) for c in campaigns for v in c.variants if is_diagnostic(v) == diagnostic)
 
 
 def runs_complete(runs: Runs, campaigns: list[Campaign]) -> tuple[str, bool]:
     """The runs complete as the report says it ("64 of 90 runs complete", the diagnostic's apart), and whether all are."""
-    complete, total = counted(runs, campaigns, diagnostic=False)
+    complete, total = counted(runs, campaigns)
     text = f"{complete} of {total} runs complete"
     diagnosed, planned = counted(runs, campaigns, diagnostic=True)
     if planned:
@@ -122,7 +117,7 @@ def summary(
     if beside_names:
         other, _, _, others = read(beside_names, storage, cache)
         label = protocol_label(others)
-        done, planned = counted(other, others, diagnostic=False)  # the column shows the grid's variants only
+        done, planned = counted(other, others)  # the column shows the grid's variants only
         apart = [f"The {label}'s column: {done} of {planned} runs complete (provisional).", ""] if done < planned else []
     lines += [*compact(runs, baseline, variant, other, label), "", *apart, *aggregates(runs, baseline)[0], ""]
     omitted = left_out(runs, baseline)

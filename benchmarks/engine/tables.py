@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from . import aggregate
-from .definitions import LOCAL_GENERALIZATION
+from .definitions import is_diagnostic
 from .results import Runs
 
 #: The paper's Table 1 (2M steps, 4M for Ant; 10 seeds; mean, half a std): task -> variant -> (mean, half std)
@@ -87,7 +87,7 @@ def ordered_variants(runs: Runs) -> list[str]:
 def compared_variants(runs: Runs) -> list[str]:
     """The variants that the aggregates, the speed and the curves compare: all but the diagnostic's,
     whose runs train an extra critic (their time) and draw other random numbers (their returns: in the table only)."""
-    return [v for v in ordered_variants(runs) if v.split(":")[-1] not in LOCAL_GENERALIZATION]
+    return [v for v in ordered_variants(runs) if not is_diagnostic(v)]
 
 
 def table(runs: Runs, baseline: str, paper: bool) -> list[str]:
