@@ -227,3 +227,31 @@ def test_readme_results_table_is_the_report_s():
     for task, cells in readme_rows.items():
         assert summary[task][: len(cells)] == cells, (task, cells, summary[task])
     assert table_rows("| a | 1 ± 2 (5) | 3x |\n|---|---|---|\n") == {"a": ["1 ± 2", "3x"]}
+
+
+def test_the_off_policy_argument_tables_list_every_pevfa_argument_with_its_default():
+    """docs/off-policy.md's tables: each PeVFA argument of SACPeVFA / TD3PeVFA and of their policies, with the
+    default the code has (a string as ``"opr"``, a class as ``nn.ReLU``), and no argument that does not exist."""
+    import inspect
+
+    from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
+    from sb3_pevfa.pevfa.q_critics import PeVFAQPolicyMixin
+
+    def shown(value) -> str:
+        if inspect.isclass(value):
+            return f"nn.{value.__name__}"
+        return f'"{value}"' if isinstance(value, str) else repr(value)
+
+    documented = {
+        name.strip("`"): cells[0].strip("`")
+        for name, cells in table_rows((DOCS / "off-policy.md").read_text()).items()
+        if name.startswith("`")
+    }
+    expected = {}
+    for function in (OffPolicyPeVFA.__init__, PeVFAQPolicyMixin.__init__):
+        for parameter in inspect.signature(function).parameters.values():
+            public = not parameter.name.startswith("_") and parameter.name != "policy_kwargs"
+            if parameter.default is not parameter.empty and public:
+                expected[parameter.name] = shown(parameter.default)
+    assert documented == expected
+    assert table_rows("| `a` | `(64,)` | x |\n|---|---|---|\n") == {"`a`": ["`(64,)`", "x"]}

@@ -6,10 +6,11 @@ import warnings
 import numpy as np
 import pytest
 import torch as th
-from conftest import read_progress
+from conftest import DictPendulum, read_progress
 from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_pevfa import PolicyRecord, SACPeVFA, TD3PeVFA
 from sb3_pevfa.diagnostics.local_generalization import ERROR_KEYS
@@ -113,13 +114,14 @@ def test_the_conventional_target_moves_on_sb3s_schedule(pevfa_class, expected):
     assert polyaks == expected and callback._updates == 8
 
 
-@pytest.mark.parametrize("normalized", [False, True])
-def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_snapshot(normalized):
+@pytest.mark.parametrize(("normalized", "dict_obs"), [(False, False), (True, False), (True, True)])
+def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_snapshot(normalized, dict_obs):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
-    env = VecNormalize(make_vec_env("Pendulum-v1", seed=0)) if normalized else "Pendulum-v1"
-    model = SACPeVFA("MlpPolicy", env, snapshot_freq=50, gamma=0.9, **tiny())
+    env = make_vec_env(DictPendulum if dict_obs else "Pendulum-v1", seed=0)
+    env = VecNormalize(env) if normalized else env
+    model = SACPeVFA("MultiInputPolicy" if dict_obs else "MlpPolicy", env, snapshot_freq=50, gamma=0.9, **tiny())
     callback = QLocalGeneralizationCallback()
     model.learn(300, callback=callback)
     policy_id, critic = model.history.latest_policy_id, model.policy.critic
@@ -140,8 +142,10 @@ def test_before_is_the_frozen_critics_and_after_the_live_ones_with_the_window_sn
     callback._close_window()
     closed = callback._closed
     rows = (model.replay_buffer.pos - 100 + np.arange(100)) % model.replay_buffer.buffer_size
-    observations = model.replay_buffer.observations[rows, 0]  # as the env gave them, unnormalized
-    observations = th.as_tensor(env.normalize_obs(observations) if normalized else observations)  # as the critics read them
+    stored = model.replay_buffer.observations  # as the env gave them, unnormalized
+    observations = {key: value[rows, 0] for key, value in stored.items()} if dict_obs else stored[rows, 0]
+    observations = env.normalize_obs(observations) if normalized else observations  # as the critics read them
+    observations = obs_as_tensor(observations, th.device("cpu"))
     actions = th.as_tensor(model.replay_buffer.actions[rows, 0])
     record = PolicyRecord.from_numpy(model.history.records([policy_id]))
 

@@ -2,20 +2,23 @@
 snapshots of its actor."""
 
 import copy
+import warnings
 
 import numpy as np
 import pytest
 import torch as th
-from conftest import needs_denormal_flush
-from stable_baselines3 import SAC, TD3
+from conftest import DictPendulum, needs_denormal_flush
+from stable_baselines3 import SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import BitFlippingEnv
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch.nn import functional as F
 
+from sb3_pevfa.pevfa import records as record_utils
 from sb3_pevfa.pevfa.records import PolicyRecord
 from sb3_pevfa.sac_pevfa import SACPeVFA
 from sb3_pevfa.td3_pevfa import TD3PeVFA
@@ -44,11 +47,14 @@ def _sb3_name(key: str) -> str:
     return key.replace(".head.hidden.0.", ".2.").replace(".head.output.", ".4.")
 
 
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
 @pytest.mark.parametrize(("sb3_class", "pevfa_class"), [(SAC, SACPeVFA), (TD3, TD3PeVFA)])
-def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class):
-    sb3 = sb3_class("MlpPolicy", "Pendulum-v1", **tiny())
-    ours = pevfa_class("MlpPolicy", "Pendulum-v1", representation="none", history_train_freq=0, flush_denormal=False,
-                       **tiny())  # fmt: skip
+def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class, policy):
+    def env():
+        return "Pendulum-v1" if policy == "MlpPolicy" else make_vec_env(DictPendulum, n_envs=1, seed=0)
+
+    sb3 = sb3_class(policy, env(), **tiny())
+    ours = pevfa_class(policy, env(), representation="none", history_train_freq=0, flush_denormal=False, **tiny())
 
     def compared() -> tuple[dict, dict]:
         mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if not k.endswith(("_codes", "_states"))}
@@ -249,7 +255,7 @@ def snapshot_then_move_on(model) -> tuple:
     with th.no_grad():
         for param in model.policy.actor.parameters():
             param.add_(0.5 * th.randn_like(param))
-    observations = th.as_tensor(model.replay_buffer.observations[:8, 0])
+    observations = obs_as_tensor(record_utils.rows(model.replay_buffer.observations, (slice(8), 0)), model.device)
     records = PolicyRecord.from_numpy(model.history.records([policy_id]))
     return snapshot, records, observations, model.actor.extract_features(observations, model.actor.features_extractor)
 
@@ -463,16 +469,62 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
 def test_a_policy_name_it_does_not_take_is_refused_with_the_valid_ones(pevfa_class):
-    """SB3's "Policy X unknown" names no choice, and SB3's advice for a Dict space (MultiInputPolicy) led here."""
-    name = pevfa_class.__name__
-    flatten = rf"'MultiInputPolicy' for {name} \(SB3's {name[:3]} takes it for Dict .*FlattenObservation\) and use MlpPolicy\)"
-    with pytest.raises(ValueError, match=flatten):
-        pevfa_class("MultiInputPolicy", "Pendulum-v1")
-    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .* MlpPolicy flattens images\), valid choices: \['MlpPolicy'\]$"
+    """SB3's "Policy X unknown" names no choice."""
+    name, valid = pevfa_class.__name__, r"valid choices: \['MlpPolicy', 'MultiInputPolicy'\]$"
+    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .* MlpPolicy flattens images\), {valid}"
     with pytest.raises(ValueError, match=cnn):
         pevfa_class("CnnPolicy", "Pendulum-v1")
-    with pytest.raises(ValueError, match=rf"^Unknown policy 'MlpPolicyy' for {name}, valid choices: \['MlpPolicy'\]$"):
+    with pytest.raises(ValueError, match=rf"^Unknown policy 'MlpPolicyy' for {name}, {valid}"):
         pevfa_class("MlpPolicyy", "Pendulum-v1")
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_an_unknown_policy_argument_is_named_with_the_closest_valid_ones(pevfa_class):
+    """SB3's own TypeError would name SB3's policy class and no valid name."""
+    where = rf"^{pevfa_class.__name__}Policy\(\) \(policy_kwargs\)"
+    unknown = r"got an unexpected keyword argument 'critic_combine'; did you mean 'critic_embedding_arch'\?$"
+    with pytest.raises(TypeError, match=f"{where} {unknown}"):
+        pevfa_class("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_combine="product"))
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_learning_on_without_the_snapshots_warns_where_they_are(tmp_path, pevfa_class):
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(120)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    loaded = pevfa_class.load(tmp_path / "model", env=model.get_env())
+    with pytest.warns(
+        UserWarning, match=r"learns on from 120 steps \(20 updates\) without its snapshots: load_replay_buffer"
+    ) as caught:
+        loaded.learn(10, reset_num_timesteps=False)
+    assert [w.filename for w in caught if "snapshots" in str(w.message)] == [__file__]  # the user's call
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pevfa_class.load(tmp_path / "model", env=model.get_env()).learn(10)  # a new run: nothing to warn of
+        resumed = pevfa_class.load(tmp_path / "model", env=model.get_env())
+        resumed.load_replay_buffer(tmp_path / "buffer")
+        resumed.learn(10, reset_num_timesteps=False)
+        early = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
+        early.learn(50)  # no update, no snapshot yet: none to lose
+        early.learn(10, reset_num_timesteps=False)
+
+
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_the_actors_deterministic_actions_at_its_features_are_sb3s(pevfa_class, policy):
+    """SPR's pairs: the actor's deterministic actions from its features (the states the snapshots keep), as SB3's
+    ``predict`` computes them from observations (SAC: the squashed mean), a Dict's too."""
+    env = make_vec_env("Pendulum-v1" if policy == "MlpPolicy" else DictPendulum, n_envs=1, seed=0)
+    model = pevfa_class(policy, env, **tiny())
+    model.learn(150)
+    observations = model.replay_buffer.sample(64).observations
+    actor = model.actor
+    with th.no_grad():
+        features = actor.extract_features(observations, actor.features_extractor)
+        expected = model.policy._predict(observations, deterministic=True)
+    th.testing.assert_close(model.policy.critic.actor_actions(features), expected, atol=0, rtol=0)
+    assert (expected.abs() < 1).all() and expected.std() > 1e-3  # SAC's squashed: inside the bounds, not constant
 
 
 def test_numpy_ints_are_ints():
@@ -507,17 +559,25 @@ def test_several_envs_under_vecnormalize(representation):
     assert (pairs > 0 and (pairs, env) in seen) == (representation == "spr")
 
 
-@pytest.mark.parametrize(("pevfa_class", "representation"), [(SACPeVFA, "opr"), (TD3PeVFA, "opr"), (SACPeVFA, "spr")])
-def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class, representation):
+@pytest.mark.parametrize(
+    ("pevfa_class", "representation", "her"),
+    [(SACPeVFA, "opr", False), (TD3PeVFA, "opr", False), (SACPeVFA, "spr", False), (SACPeVFA, "spr", True)],
+)
+def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tmp_path, pevfa_class, representation, her):
     """Model, replay buffer and snapshots saved, RNG states restored: learning on continues bit for bit (the envs
-    seeded and reset at the resume in both runs, as SB3's load does)."""
+    seeded and reset at the resume in both runs, as SB3's load does); also with HER's replay buffer of a goal env's
+    Dict observations (MultiInputPolicy)."""
 
     def make_env():
+        if her:
+            return make_vec_env(BitFlippingEnv, n_envs=1, seed=0, env_kwargs=dict(n_bits=4, continuous=True))
         return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
 
     kwargs = dict(snapshot_freq=20, history_train_freq=2, history_batch_size=32, history_batch_policies=4,
                   representation=representation, n_state_action_pairs=8, **tiny())  # fmt: skip
-    reference = pevfa_class("MlpPolicy", make_env(), **kwargs)
+    if her:
+        kwargs.update(replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(n_sampled_goal=2))
+    reference = pevfa_class("MultiInputPolicy" if her else "MlpPolicy", make_env(), **kwargs)
     reference.learn(200)
     reference.save(tmp_path / "model")
     reference.save_replay_buffer(tmp_path / "replay_buffer")  # the snapshots beside it
@@ -528,10 +588,10 @@ def test_resume_with_replay_buffer_and_snapshots_equals_the_uninterrupted_run(tm
 
     def resumed(with_snapshots: bool):
         model = pevfa_class.load(tmp_path / "model", env=make_env(), restore_rng_state=True)
-        if with_snapshots:
-            model.load_replay_buffer(tmp_path / "replay_buffer")
+        if with_snapshots:  # HER's episode under way goes on (its default truncates it: the reference's did not end)
+            model.load_replay_buffer(tmp_path / "replay_buffer", truncate_last_traj=False)
         else:  # SB3's replay buffer alone
-            OffPolicyAlgorithm.load_replay_buffer(model, tmp_path / "replay_buffer.pkl")
+            OffPolicyAlgorithm.load_replay_buffer(model, tmp_path / "replay_buffer.pkl", truncate_last_traj=False)
         return model.learn(100, reset_num_timesteps=False)
 
     model = resumed(with_snapshots=True)
@@ -564,17 +624,23 @@ def test_spr_records_each_snapshots_deterministic_actions_at_replay_states(pevfa
     assert not th.allclose(live.actions[0], expected, atol=1e-3)
 
 
-@pytest.mark.parametrize(("n_envs", "buffer_size", "stored"), [(1, 1_000_000, 101), (1, 100, 100), (2, 1_000_000, 51)])
+@pytest.mark.parametrize(
+    ("n_envs", "buffer_size", "stored", "dict_obs"),
+    [(1, 1_000_000, 101, False), (1, 100, 100, False), (2, 1_000_000, 51, False), (2, 1_000_000, 51, True)],
+)
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
 def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay_buffer(
-    pevfa_class, n_envs, buffer_size, stored
+    pevfa_class, n_envs, buffer_size, stored, dict_obs
 ):
-    env = make_vec_env("Pendulum-v1", n_envs=n_envs, seed=0)
-    model = pevfa_class("MlpPolicy", env, representation="fingerprint", buffer_size=buffer_size, **tiny())
+    env = make_vec_env(DictPendulum if dict_obs else "Pendulum-v1", n_envs=n_envs, seed=0)
+    policy = "MultiInputPolicy" if dict_obs else "MlpPolicy"
+    model = pevfa_class(policy, env, representation="fingerprint", buffer_size=buffer_size, **tiny())
     model.learn(101)  # one gradient step: the first snapshot set the probes, 32 evenly spaced of the rows stored
     representation = model.policy.critic.representation
     rows = np.arange(32) * stored // 32  # a full buffer (100 rows, wrapped once): all its rows; env row % n_envs
-    expected = th.as_tensor(model.replay_buffer.observations[rows, rows % n_envs])
+    stored = model.replay_buffer.observations  # a Dict's: its keys' rows side by side, in the space's order
+    expected = th.as_tensor(np.concatenate([stored[key] for key in ("angle", "speed")], axis=-1) if dict_obs else stored)
+    expected = expected[rows, rows % n_envs]
     assert bool(representation.probes_set) and th.equal(model.policy.critic_target.representation.probes, expected)
     snapshot, records, _, _ = snapshot_then_move_on(model)
     probes = representation.probes.detach()
@@ -583,8 +649,8 @@ def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay
         if pevfa_class is SACPeVFA:  # the mean and log-std heads
             latent = snapshot.latent_pi(probes)
             wanted = th.cat([snapshot.mu(latent), snapshot.log_std(latent)], dim=1)
-        else:  # the deterministic action
-            wanted = snapshot(probes)
+        else:  # the deterministic action (the probes are the actor's features)
+            wanted = snapshot.mu(probes)
     th.testing.assert_close(features, wanted, atol=1e-5, rtol=0)
 
 
@@ -617,6 +683,10 @@ def test_a_replay_buffer_whose_snapshots_do_not_load_leaves_the_model_as_it_was(
     with pytest.raises(ValueError, match=r"buffer\.snapshots\.npz"):
         other.load_replay_buffer(tmp_path / "buffer")
     assert other.replay_buffer is buffer and other.history.policy_ids == ids
+    del other.replay_buffer  # none before (SB3's HER test deletes it first): none after
+    with pytest.raises(ValueError, match=r"buffer\.snapshots\.npz"):
+        other.load_replay_buffer(tmp_path / "buffer")
+    assert "replay_buffer" not in vars(other) and other.history.policy_ids == ids
 
 
 def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment(tmp_path):

@@ -71,9 +71,9 @@ def test_shipped_hyperparameters(algo):
     if algo in ("ppo_pevfa", "a2c_pevfa"):  # every entry of rl-zoo3's ppo.yml / a2c.yml but PyBullet's and MiniGrid's
         names = {k.replace("-v2", "-v5") for k in zoo if "Bullet" not in k and not k.startswith("MiniGrid-")}
         assert names <= set(config), sorted(names - set(config))
-    if algo in OFF_POLICY:  # and of sac.yml / td3.yml but PyBullet's, gSDE's (refused) and FetchReach (dict, HER)
+    if algo in OFF_POLICY:  # and of sac.yml / td3.yml but PyBullet's, gSDE's (refused) and FetchReach (third-party)
         names = {k.replace("-v4", "-v5") for k, v in zoo.items() if "Bullet" not in k and not v.get("use_sde")}
-        assert names - {"default", "FetchReach-v1"} <= set(config), sorted(names - set(config))
+        assert names - {"FetchReach-v1"} <= set(config), sorted(names - set(config))
     for env_id, params in config.items():
         assert params["representation"] == "opr"
         # PeVFA's own schedule only where it was measured (docs/notes/2026-12-02-zoo-tuned-history-cadence.md):
@@ -411,12 +411,13 @@ def test_every_shipped_off_policy_entry_builds_a_model(algo, entry, tmp_path):
     import gymnasium as gym
     from rl_zoo3.exp_manager import ExperimentManager
 
+    env_id = {"default": "Reacher-v5"}.get(entry, entry)  # an env without an entry of its own
     try:
-        gym.make(entry).close()
+        gym.make(env_id).close()
     except (gym.error.DependencyNotInstalled, gym.error.NameNotFound, ImportError) as error:
-        pytest.skip(f"{entry} cannot be made here: {error}")
+        pytest.skip(f"{env_id} cannot be made here: {error}")
     register()
-    manager = ExperimentManager(argparse.Namespace(), algo, entry, str(tmp_path), n_timesteps=1000, eval_freq=-1,
+    manager = ExperimentManager(argparse.Namespace(), algo, env_id, str(tmp_path), n_timesteps=1000, eval_freq=-1,
                                 config=str(HYPERPARAMS_PATHS[algo]), verbose=0)  # fmt: skip
     model, _ = manager.setup_experiment()
     params = yaml.safe_load(HYPERPARAMS_PATHS[algo].read_text())[entry]

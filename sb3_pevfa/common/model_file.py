@@ -20,8 +20,6 @@ SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"
 #: What to use instead of an SB3 policy name a PeVFA algorithm does not take
 POLICY_ADVICE = {
     "CnnPolicy": "for image observations through a CNN; {cls} has no CNN policy: MlpPolicy flattens images",
-    "MultiInputPolicy": "for Dict observations, which {cls} does not support: flatten them "
-    "(gymnasium.wrappers.FlattenObservation) and use MlpPolicy",
 }
 
 

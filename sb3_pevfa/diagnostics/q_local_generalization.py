@@ -200,8 +200,11 @@ class QLocalGeneralizationCallback(ResumableDiagnostic):
         if rows is None:
             return
         n = rows.size * buffer.n_envs
-        observations = buffer._normalize_obs(buffer.observations[rows], model._vec_normalize_env)
-        observations = obs_as_tensor(observations.reshape(n, *buffer.obs_shape), model.device)
+        if isinstance(buffer.observations, dict):  # a DictReplayBuffer (MultiInputPolicy)
+            raw = {key: value[rows].reshape(n, *buffer.obs_shape[key]) for key, value in buffer.observations.items()}
+        else:
+            raw = buffer.observations[rows].reshape(n, *buffer.obs_shape)
+        observations = obs_as_tensor(buffer._normalize_obs(raw, model._vec_normalize_env), model.device)
         actions = th.as_tensor(buffer.actions[rows].reshape(n, -1), device=model.device)
         live = model.policy.critic
         training = live.training

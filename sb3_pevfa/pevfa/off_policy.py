@@ -11,13 +11,14 @@ r + gamma (1 - d) (min Q'(s', a'_k, chi'_k) [- alpha log pi_k(a'_k | s')]), a'_k
 
 import io
 import pathlib
+import warnings
 from typing import Any
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch.nn import functional as F
 
 from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
@@ -26,7 +27,7 @@ from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
 from sb3_pevfa.pevfa.q_critics import OFF_POLICY_REPRESENTATIONS
-from sb3_pevfa.pevfa.records import PolicyRecord, state_dim
+from sb3_pevfa.pevfa.records import PolicyRecord, rows, state_dim
 
 #: The snapshot arguments of an off-policy PeVFA algorithm's constructor
 SNAPSHOT_ARGUMENTS = (
@@ -174,6 +175,12 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         self._require_env()
         if reset_num_timesteps:  # SB3 counts the episodes anew
             self._snapshot_episodes = 0
+        elif self._n_updates and not self.history.n_policies:  # a loaded model: its snapshots travel with its buffer
+            warnings.warn(
+                f"{type(self).__name__} learns on from {self.num_timesteps} steps ({self._n_updates} updates) without "
+                "its snapshots: load_replay_buffer (or load_history) brings those saved with save_replay_buffer",
+                stacklevel=4,  # the user's learn (SAC.learn, OffPolicyAlgorithm.learn, this)
+            )
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
@@ -188,9 +195,9 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
             observations = buffer.sample(n, env=self._vec_normalize_env).observations  # type: ignore[union-attr]
         else:
             stored = buffer.buffer_size if buffer.full else buffer.pos  # type: ignore[union-attr]
-            rows = np.arange(n) * stored // n
-            raw = buffer.observations[rows, rows % buffer.n_envs]  # type: ignore[union-attr]
-            observations = buffer.to_torch(buffer._normalize_obs(raw, self._vec_normalize_env))  # type: ignore[union-attr]
+            index = np.arange(n) * stored // n
+            raw = rows(buffer.observations, (index, index % buffer.n_envs))  # type: ignore[union-attr]
+            observations = obs_as_tensor(buffer._normalize_obs(raw, self._vec_normalize_env), self.device)  # type: ignore[union-attr]
         with th.no_grad():
             return self.actor.extract_features(observations, self.actor.features_extractor)
 
@@ -326,13 +333,16 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         checkpoint: a replay buffer saved beside it at this model's ``num_timesteps`` (SB3's ``CheckpointCallback``
         with ``save_replay_buffer=True``) is loaded instead; snapshots from after it load with a warning."""
         path = path_of_the_moment(path, self.num_timesteps, "the replay buffer and snapshots", snapshots_path)
-        previous = self.replay_buffer
+        had, previous = "replay_buffer" in vars(self), vars(self).get("replay_buffer")  # SB3's HER test deletes it first
         super().load_replay_buffer(path, truncate_last_traj)
         if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
             try:
                 self.load_history(snapshots_path(path))  # checked in full before it replaces anything
             except BaseException:
-                self.replay_buffer = previous
+                if had:
+                    self.replay_buffer = previous
+                else:
+                    del self.replay_buffer
                 raise
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:

@@ -25,6 +25,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 from torch.nn import functional as F
 
+from sb3_pevfa.common.checks import check_argument_names, init_parameters
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, state_dim
@@ -102,7 +103,7 @@ class PeVFAContinuousCritic(BaseModel):
     :param layout: The actor's parameter layout
     :param actor_holder: A one-element tuple of the policy whose actor is live (its ``actor_parts``, read at each call
         without gradient; a tuple, so that the policy is not a submodule of its own critic)
-    :param representation: ``opr``, ``random`` or ``none``
+    :param representation: ``opr``, ``spr``, ``fingerprint``, ``random`` or ``none``
     :param embedding_arch: The embedding stream of chi
     :param head_arch: Layers after the two streams are concatenated; None: the last layer of ``net_arch`` (the critic
         then has SB3's layers, chi entering before the last hidden one)
@@ -216,9 +217,9 @@ class PeVFAContinuousCritic(BaseModel):
         return self._cached("params", self._actor_key(), flatten, self._actor_cache)
 
     def actor_actions(self, states: th.Tensor) -> th.Tensor:
-        """The live actor's deterministic actions (SAC: its squashed mean) at flat states, without gradient."""
+        """The live actor's deterministic actions (SAC: its squashed mean) at its features, without gradient."""
         with th.no_grad():
-            return self.actor_holder[0]._predict(states, deterministic=True)
+            return self.actor_holder[0].deterministic_actions(states)
 
     def actor_record(self) -> PolicyRecord:
         """The live actor's record: its flat parameters (a copy, without gradient), its actions at its latest
@@ -276,7 +277,8 @@ class PeVFAContinuousCritic(BaseModel):
 class PeVFAQPolicyMixin(OnePassTrainingMode):
     """What SB3's SAC and TD3 policies need to build :class:`PeVFAContinuousCritic`: the PeVFA keyword arguments,
     ``make_critic`` and the constructor parameters. A policy lists it before its SB3 base and defines
-    ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them). The training mode is
+    ``actor_parts()`` (its actor's hidden layers and output heads, as the layout reads them) and
+    ``deterministic_actions(features)`` (its actor's deterministic actions at its features: SPR's pairs). The training mode is
     set in one pass over the actor's and the critic's modules (the target critic stays in evaluation mode, as SB3's).
 
     :param representation: ``opr`` (the actor's parameters), ``spr`` (its actions at replay states), ``fingerprint``
@@ -311,6 +313,8 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         fused_critic_optimizer: bool = True,
         **kwargs: Any,
     ):
+        # SB3's own TypeError would name SB3's policy class, without the valid names
+        check_argument_names(kwargs, init_parameters(type(self)), f"{type(self).__name__}() (policy_kwargs)")
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
         if isinstance(n_state_action_pairs, bool) or not isinstance(n_state_action_pairs, (int, np.integer)):

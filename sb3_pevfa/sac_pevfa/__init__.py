@@ -1,4 +1,4 @@
-from sb3_pevfa.sac_pevfa.policies import MlpPolicy, SACPeVFAPolicy
+from sb3_pevfa.sac_pevfa.policies import MlpPolicy, MultiInputPolicy, SACPeVFAMultiInputPolicy, SACPeVFAPolicy
 from sb3_pevfa.sac_pevfa.sac_pevfa import SACPeVFA
 
-__all__ = ["MlpPolicy", "SACPeVFA", "SACPeVFAPolicy"]
+__all__ = ["MlpPolicy", "MultiInputPolicy", "SACPeVFA", "SACPeVFAMultiInputPolicy", "SACPeVFAPolicy"]

@@ -1,5 +1,9 @@
-"""SAC's policy with a policy-extended twin critic Q(s, a, chi_pi)."""
+"""SAC's policies with a policy-extended twin critic Q(s, a, chi_pi)."""
 
+from typing import Any
+
+import torch as th
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
@@ -15,5 +19,17 @@ class SACPeVFAPolicy(PeVFAQPolicyMixin, SACPolicy):
         """The actor's hidden layers and its output heads (the mean and the log-std), as the layout reads them."""
         return self.actor.latent_pi, [self.actor.mu, self.actor.log_std]
 
+    def deterministic_actions(self, features: th.Tensor) -> th.Tensor:
+        """The actor's deterministic actions (its squashed mean) at its features, as SB3's actor computes them."""
+        return th.tanh(self.actor.mu(self.actor.latent_pi(features)))
+
+
+class SACPeVFAMultiInputPolicy(SACPeVFAPolicy):
+    """:class:`SACPeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's SAC ``MultiInputPolicy``."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
 
 MlpPolicy = SACPeVFAPolicy
+MultiInputPolicy = SACPeVFAMultiInputPolicy

@@ -1,5 +1,9 @@
-"""TD3's policy with a policy-extended twin critic Q(s, a, chi_pi)."""
+"""TD3's policies with a policy-extended twin critic Q(s, a, chi_pi)."""
 
+from typing import Any
+
+import torch as th
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
@@ -21,5 +25,17 @@ class TD3PeVFAPolicy(PeVFAQPolicyMixin, TD3Policy):
             raise TypeError(f"TD3PeVFA expects SB3's actor, its output through nn.Tanh, got {self.actor.mu}")
         return nn.Sequential(*layers[:-2]), [layers[-2]]
 
+    def deterministic_actions(self, features: th.Tensor) -> th.Tensor:
+        """The actor's actions at its features, as SB3's actor computes them."""
+        return self.actor.mu(features)
+
+
+class TD3PeVFAMultiInputPolicy(TD3PeVFAPolicy):
+    """:class:`TD3PeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's TD3 ``MultiInputPolicy``."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
 
 MlpPolicy = TD3PeVFAPolicy
+MultiInputPolicy = TD3PeVFAMultiInputPolicy

@@ -8,11 +8,10 @@ replaced by :class:`~sb3_pevfa.SACPeVFA` and :class:`~sb3_pevfa.TD3PeVFA`, their
 - **Selection.** Only the cases of SAC or TD3 run: a test parametrized over algorithm classes runs for SACPeVFA and
   TD3PeVFA only; any other test runs only if its code names ``SAC`` or ``TD3``. The rest are deselected.
 - **Failures** are strict xfails with their reason and exception, in :data:`XFAIL`: the design differences
-  (docs/off-policy.md: MlpPolicy only, no gSDE) and one PeVFA behaviour that differs from SB3's (a small critic's
+  (docs/off-policy.md: no CnnPolicy, no gSDE) and one PeVFA behaviour that differs from SB3's (a small critic's
   value read from an earlier snapshot's). Slow cases are deselected, in :data:`SLOW` with their reason.
-- **Not vendored**: SB3's other test files. ``test_her.py`` (HER needs MultiInputPolicy) and ``test_cnn.py``
-  (CnnPolicy, image observations) would only be xfails; the rest do not run SAC or TD3 (buffers, envs, VecEnvs,
-  logger, utils, distributions, preprocessing).
+- **Not vendored**: SB3's other test files. ``test_cnn.py`` (CnnPolicy, image observations) would only be xfails;
+  the rest do not run SAC or TD3 (buffers, envs, VecEnvs, logger, utils, distributions, preprocessing).
 
 This folder is a package (``__init__.py``) so that its conftest does not take the module name ``conftest`` from
 ``tests/conftest.py`` (which ``tests/test_sb3_generic.py`` imports as ``conftest``).
@@ -40,8 +39,7 @@ ALIASES = {
     (stable_baselines3.td3, "TD3"): TD3PeVFA,
 }
 
-_MULTI_INPUT = "design: no MultiInputPolicy (Dict observations); SACPeVFA / TD3PeVFA offer only MlpPolicy"
-_CNN = "design: no CnnPolicy (image observations); SACPeVFA / TD3PeVFA offer only MlpPolicy"
+_CNN = "design: no CnnPolicy (image observations); SACPeVFA / TD3PeVFA offer MlpPolicy and MultiInputPolicy"
 _SDE = "design: use_sde=True is refused (a PeVFA records actors of linear layers; docs/off-policy.md)"
 
 _SNAPSHOT_VALUES = (
@@ -52,24 +50,16 @@ _SNAPSHOT_VALUES = (
 )
 
 #: The messages of the design refusals (an xfail's exception must say it, not only be of its type)
-_NO_MULTI_INPUT, _NO_CNN, _NO_SDE = r"MultiInputPolicy", r"CnnPolicy", r"use_sde=True is not supported"
+_NO_CNN, _NO_SDE = r"CnnPolicy", r"use_sde=True is not supported"
 
 #: (node id pattern, matched with re.search, reason, the exception expected, a pattern its message matches): strict
 #: xfails
 XFAIL: list[tuple[str, str, type[BaseException] | tuple[type[BaseException], ...], str]] = [
-    (r"test_dict_env\.py::", _MULTI_INPUT, ValueError, _NO_MULTI_INPUT),
-    (
-        r"test_n_step_replay\.py::test_n_steps_with_dict_obs\[",
-        _MULTI_INPUT,
-        (ValueError, pytest.fail.Exception),
-        _NO_MULTI_INPUT,
-    ),
-    (r"test_spaces\.py::test_float64_action_space\[action_space\d-obs_space[23]-", _MULTI_INPUT, ValueError, _NO_MULTI_INPUT),
-    (r"test_vec_normalize\.py::test_her_normalization$", _MULTI_INPUT + " (HER needs it)", ValueError, _NO_MULTI_INPUT),
     (r"test_save_load\.py::test_save_load_env_cnn\[", _CNN, ValueError, _NO_CNN),
     (r"test_save_load\.py::test_save_load_policy\[(False|True)-CnnPolicy-", _CNN, ValueError, _NO_CNN),
     (r"test_save_load\.py::test_save_load_policy\[True-MlpPolicy-SACPeVFA\]", _SDE, ValueError, _NO_SDE),
     (r"test_sde\.py::test_state_dependent_noise\[True-", _SDE, ValueError, _NO_SDE),
+    (r"test_her\.py::test_save_load\[True-SACPeVFA\]", _SDE, ValueError, _NO_SDE),
     (r"test_spaces\.py::test_sde_multi_dim$", _SDE, ValueError, _NO_SDE),
     (r"test_run\.py::test_offpolicy_multi_env\[SACPeVFA\]", _SDE + " (SB3's test turns it on for SAC)", ValueError, _NO_SDE),
     (
