@@ -11,7 +11,7 @@ from conftest import DictPendulum, needs_denormal_flush
 from stable_baselines3 import SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.envs import BitFlippingEnv
+from stable_baselines3.common.envs import BitFlippingEnv, FakeImageEnv
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -47,14 +47,19 @@ def _sb3_name(key: str) -> str:
     return key.replace(".head.hidden.0.", ".2.").replace(".head.output.", ".4.")
 
 
-@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy", "CnnPolicy"])
 @pytest.mark.parametrize(("sb3_class", "pevfa_class"), [(SAC, SACPeVFA), (TD3, TD3PeVFA)])
 def test_without_representation_and_snapshot_updates_it_is_sb3_bit_for_bit(sb3_class, pevfa_class, policy):
     def env():
+        if policy == "CnnPolicy":
+            images = make_vec_env(FakeImageEnv, seed=0, env_kwargs=dict(screen_height=36, screen_width=36, discrete=False))
+            images.envs[0].unwrapped.observation_space.seed(0)  # its observations are the space's samples
+            return images
         return "Pendulum-v1" if policy == "MlpPolicy" else make_vec_env(DictPendulum, n_envs=1, seed=0)
 
-    sb3 = sb3_class(policy, env(), **tiny())
-    ours = pevfa_class(policy, env(), representation="none", history_train_freq=0, flush_denormal=False, **tiny())
+    images = dict(buffer_size=1000) if policy == "CnnPolicy" else {}
+    sb3 = sb3_class(policy, env(), **images, **tiny())
+    ours = pevfa_class(policy, env(), representation="none", history_train_freq=0, flush_denormal=False, **images, **tiny())
 
     def compared() -> tuple[dict, dict]:
         mine = {_sb3_name(k): v for k, v in ours.policy.state_dict().items() if not k.endswith(("_codes", "_states"))}
@@ -470,12 +475,20 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
 def test_a_policy_name_it_does_not_take_is_refused_with_the_valid_ones(pevfa_class):
     """SB3's "Policy X unknown" names no choice."""
-    name, valid = pevfa_class.__name__, r"valid choices: \['MlpPolicy', 'MultiInputPolicy'\]$"
-    cnn = rf"^Unknown policy 'CnnPolicy' for {name} \(.* CNN; .* MlpPolicy flattens images\), {valid}"
-    with pytest.raises(ValueError, match=cnn):
-        pevfa_class("CnnPolicy", "Pendulum-v1")
+    name, valid = pevfa_class.__name__, r"valid choices: \['CnnPolicy', 'MlpPolicy', 'MultiInputPolicy'\]$"
     with pytest.raises(ValueError, match=rf"^Unknown policy 'MlpPolicyy' for {name}, {valid}"):
         pevfa_class("MlpPolicyy", "Pendulum-v1")
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_spr_refuses_images_which_the_other_representations_take(pevfa_class):
+    env = make_vec_env(FakeImageEnv, seed=0, env_kwargs=dict(screen_height=36, screen_width=36, discrete=False))
+    with pytest.raises(ValueError, match=r"^representation='spr' does not support image observations"):
+        pevfa_class("CnnPolicy", env, representation="spr", buffer_size=100)
+    model = pevfa_class("CnnPolicy", env, representation="fingerprint", buffer_size=100, **tiny())
+    model.learn(110)  # the probes are the CNN's features
+    representation = model.policy.critic.representation
+    assert bool(representation.probes_set) and representation.probes.shape == (32, model.actor.features_dim)
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])

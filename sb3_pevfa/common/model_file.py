@@ -17,10 +17,6 @@ from sb3_pevfa.common.checks import check_argument_names, init_parameters
 
 #: The keyword arguments of SB3's ``load`` (``env``, ``device``, ``custom_objects``, ...)
 SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
-#: What to use instead of an SB3 policy name a PeVFA algorithm does not take
-POLICY_ADVICE = {
-    "CnnPolicy": "for image observations through a CNN; {cls} has no CNN policy: MlpPolicy flattens images",
-}
 
 
 def sb3_base(cls: type) -> type:
@@ -93,15 +89,11 @@ class ModelFile:
         return model
 
     def _get_policy_from_name(self, policy_name: str) -> type:
-        """SB3's, whose ValueError names the valid choices and, for a name the SB3 algorithm takes, what it is for."""
+        """SB3's, whose ValueError names the valid choices."""
         if policy_name in self.policy_aliases:  # type: ignore[attr-defined]
             return self.policy_aliases[policy_name]  # type: ignore[attr-defined]
-        base = sb3_base(type(self))
-        reason = ""
-        if policy_name in base.policy_aliases and policy_name in POLICY_ADVICE:
-            reason = f" (SB3's {base.__name__} takes it {POLICY_ADVICE[policy_name].format(cls=type(self).__name__)})"
         valid = sorted(self.policy_aliases)  # type: ignore[attr-defined]
-        raise ValueError(f"Unknown policy {policy_name!r} for {type(self).__name__}{reason}, valid choices: {valid}")
+        raise ValueError(f"Unknown policy {policy_name!r} for {type(self).__name__}, valid choices: {valid}")
 
     def _require_env(self) -> None:
         """A ValueError, before learning, where the model has no env (SB3 asserts it without a message)."""

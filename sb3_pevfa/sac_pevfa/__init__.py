@@ -1,4 +1,19 @@
-from sb3_pevfa.sac_pevfa.policies import MlpPolicy, MultiInputPolicy, SACPeVFAMultiInputPolicy, SACPeVFAPolicy
+from sb3_pevfa.sac_pevfa.policies import (
+    CnnPolicy,
+    MlpPolicy,
+    MultiInputPolicy,
+    SACPeVFACnnPolicy,
+    SACPeVFAMultiInputPolicy,
+    SACPeVFAPolicy,
+)
 from sb3_pevfa.sac_pevfa.sac_pevfa import SACPeVFA
 
-__all__ = ["MlpPolicy", "MultiInputPolicy", "SACPeVFA", "SACPeVFAMultiInputPolicy", "SACPeVFAPolicy"]
+__all__ = [
+    "CnnPolicy",
+    "MlpPolicy",
+    "MultiInputPolicy",
+    "SACPeVFA",
+    "SACPeVFACnnPolicy",
+    "SACPeVFAMultiInputPolicy",
+    "SACPeVFAPolicy",
+]

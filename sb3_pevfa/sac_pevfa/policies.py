@@ -3,7 +3,7 @@
 from typing import Any
 
 import torch as th
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
@@ -24,6 +24,14 @@ class SACPeVFAPolicy(PeVFAQPolicyMixin, SACPolicy):
         return th.tanh(self.actor.mu(self.actor.latent_pi(features)))
 
 
+class SACPeVFACnnPolicy(SACPeVFAPolicy):
+    """:class:`SACPeVFAPolicy` for images (SB3's ``NatureCNN``), as SB3's SAC ``CnnPolicy``; the CNN is not part of a
+    snapshot (the layout records the actor's linear layers)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
 class SACPeVFAMultiInputPolicy(SACPeVFAPolicy):
     """:class:`SACPeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's SAC ``MultiInputPolicy``."""
 
@@ -32,4 +40,5 @@ class SACPeVFAMultiInputPolicy(SACPeVFAPolicy):
 
 
 MlpPolicy = SACPeVFAPolicy
+CnnPolicy = SACPeVFACnnPolicy
 MultiInputPolicy = SACPeVFAMultiInputPolicy

@@ -10,7 +10,7 @@ from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN
 
 from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 from sb3_pevfa.pevfa.records import PolicyRecord
-from sb3_pevfa.sac_pevfa.policies import MlpPolicy, MultiInputPolicy, SACPeVFAPolicy
+from sb3_pevfa.sac_pevfa.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, SACPeVFAPolicy
 
 
 class SACPeVFA(OffPolicyPeVFA, SAC):
@@ -43,7 +43,11 @@ class SACPeVFA(OffPolicyPeVFA, SAC):
         representation is ``none`` and ``history_train_freq`` 0
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
     policy: SACPeVFAPolicy
     added_policy_kwargs = (*OffPolicyPeVFA.added_policy_kwargs, "use_sde")  # SB3's SAC adds use_sde too
     critic_loss_scale = 0.5

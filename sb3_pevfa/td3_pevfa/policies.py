@@ -3,7 +3,7 @@
 from typing import Any
 
 import torch as th
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
@@ -30,6 +30,14 @@ class TD3PeVFAPolicy(PeVFAQPolicyMixin, TD3Policy):
         return self.actor.mu(features)
 
 
+class TD3PeVFACnnPolicy(TD3PeVFAPolicy):
+    """:class:`TD3PeVFAPolicy` for images (SB3's ``NatureCNN``), as SB3's TD3 ``CnnPolicy``; the CNN is not part of a
+    snapshot (the layout records the actor's linear layers)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
 class TD3PeVFAMultiInputPolicy(TD3PeVFAPolicy):
     """:class:`TD3PeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's TD3 ``MultiInputPolicy``."""
 
@@ -38,4 +46,5 @@ class TD3PeVFAMultiInputPolicy(TD3PeVFAPolicy):
 
 
 MlpPolicy = TD3PeVFAPolicy
+CnnPolicy = TD3PeVFACnnPolicy
 MultiInputPolicy = TD3PeVFAMultiInputPolicy

@@ -8,7 +8,7 @@ from stable_baselines3.common.policies import BasePolicy
 
 from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 from sb3_pevfa.pevfa.records import PolicyRecord
-from sb3_pevfa.td3_pevfa.policies import MlpPolicy, MultiInputPolicy, TD3PeVFAPolicy
+from sb3_pevfa.td3_pevfa.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3PeVFAPolicy
 
 
 class TD3PeVFA(OffPolicyPeVFA, TD3):
@@ -22,7 +22,11 @@ class TD3PeVFA(OffPolicyPeVFA, TD3):
     :class:`~sb3_pevfa.SACPeVFA`'s.
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
     policy: TD3PeVFAPolicy
 
     def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, None]:

@@ -8,10 +8,10 @@ replaced by :class:`~sb3_pevfa.SACPeVFA` and :class:`~sb3_pevfa.TD3PeVFA`, their
 - **Selection.** Only the cases of SAC or TD3 run: a test parametrized over algorithm classes runs for SACPeVFA and
   TD3PeVFA only; any other test runs only if its code names ``SAC`` or ``TD3``. The rest are deselected.
 - **Failures** are strict xfails with their reason and exception, in :data:`XFAIL`: the design differences
-  (docs/off-policy.md: no CnnPolicy, no gSDE) and one PeVFA behaviour that differs from SB3's (a small critic's
+  (docs/off-policy.md: no gSDE) and one PeVFA behaviour that differs from SB3's (a small critic's
   value read from an earlier snapshot's). Slow cases are deselected, in :data:`SLOW` with their reason.
-- **Not vendored**: SB3's other test files. ``test_cnn.py`` (CnnPolicy, image observations) would only be xfails;
-  the rest do not run SAC or TD3 (buffers, envs, VecEnvs, logger, utils, distributions, preprocessing).
+- **Not vendored**: SB3's other test files; they do not run SAC or TD3 (buffers, envs, VecEnvs, logger, utils,
+  distributions, preprocessing).
 
 This folder is a package (``__init__.py``) so that its conftest does not take the module name ``conftest`` from
 ``tests/conftest.py`` (which ``tests/test_sb3_generic.py`` imports as ``conftest``).
@@ -39,7 +39,6 @@ ALIASES = {
     (stable_baselines3.td3, "TD3"): TD3PeVFA,
 }
 
-_CNN = "design: no CnnPolicy (image observations); SACPeVFA / TD3PeVFA offer MlpPolicy and MultiInputPolicy"
 _SDE = "design: use_sde=True is refused (a PeVFA records actors of linear layers; docs/off-policy.md)"
 
 _SNAPSHOT_VALUES = (
@@ -50,14 +49,12 @@ _SNAPSHOT_VALUES = (
 )
 
 #: The messages of the design refusals (an xfail's exception must say it, not only be of its type)
-_NO_CNN, _NO_SDE = r"CnnPolicy", r"use_sde=True is not supported"
+_NO_SDE = r"use_sde=True is not supported"
 
 #: (node id pattern, matched with re.search, reason, the exception expected, a pattern its message matches): strict
 #: xfails
 XFAIL: list[tuple[str, str, type[BaseException] | tuple[type[BaseException], ...], str]] = [
-    (r"test_save_load\.py::test_save_load_env_cnn\[", _CNN, ValueError, _NO_CNN),
-    (r"test_save_load\.py::test_save_load_policy\[(False|True)-CnnPolicy-", _CNN, ValueError, _NO_CNN),
-    (r"test_save_load\.py::test_save_load_policy\[True-MlpPolicy-SACPeVFA\]", _SDE, ValueError, _NO_SDE),
+    (r"test_save_load\.py::test_save_load_policy\[True-(Mlp|Cnn)Policy-SACPeVFA\]", _SDE, ValueError, _NO_SDE),
     (r"test_sde\.py::test_state_dependent_noise\[True-", _SDE, ValueError, _NO_SDE),
     (r"test_her\.py::test_save_load\[True-SACPeVFA\]", _SDE, ValueError, _NO_SDE),
     (r"test_spaces\.py::test_sde_multi_dim$", _SDE, ValueError, _NO_SDE),
