@@ -1,4 +1,4 @@
-"""Learning campaigns as resumable Optuna studies: one study per campaign, a grid of task x variant x seed
+r"""Learning campaigns as resumable Optuna studies: one study per campaign, a grid of task x variant x seed
 (``GridSampler``; each worker enqueues a grid point that no trial holds, drawn at random), one training per trial.
 
 Every trial stores, as user attributes, its evaluation curve (env steps, mean and std of the evaluation returns, the
@@ -19,6 +19,8 @@ that a missing dependency (Box2D, MuJoCo) stops it with its reason. A worker out
 the last ones and takes over any whose worker dies. A task, variant and seed counts once in the report, however often
 it ran.
 
+    # every campaign, its grid and how much of it is done
+    python benchmarks/campaign.py status
     # the paper's Table 1, part (a): 6 tasks x {paper PPO, PPO-PeVFA OPR-E2E} x seeds 0-4, 1M steps (days of CPU)
     nohup python benchmarks/campaign.py run --campaign table1 --workers 2 > campaign.log 2>&1 &
     python benchmarks/campaign.py status --campaign table1

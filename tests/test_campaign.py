@@ -239,6 +239,8 @@ def test_recover_enqueues_interrupted_trials_once_and_leaves_failed_trainings(tm
     assert results.trial_outcome(optuna.create_trial(state=TrialState.RUNNING)) == ""  # before its first evaluation
     raised = optuna.create_trial(state=TrialState.FAIL, user_attrs={**progress, "error": "RuntimeError: a NaN"})
     assert results.trial_outcome(raised) == " (raised RuntimeError: a NaN)"
+    duplicate = optuna.create_trial(state=TrialState.PRUNED, user_attrs={"duplicate_of": 7})  # a worker drew a held point
+    assert results.trial_outcome(duplicate) == " (a duplicate of #7)"
     study.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 4},
                                         distributions=distributions))  # fmt: skip
     assert storage.recover(study, tiny) == [13] and not storage.raised(study.trials[13])
@@ -980,6 +982,28 @@ def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
     )
     commands.campaign_report_main(["--campaign", "mine", "--storage", journal, "--out", str(tmp_path / "new" / "out")])
     assert (tmp_path / "new" / "out" / "report.md").read_text().startswith("Campaigns mine: 0 of 1 runs complete.")
+
+
+def test_status_without_a_campaign_lists_every_campaign_with_its_progress(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(storage, "CAMPAIGN_DIR", tmp_path)  # the repository's journal files: one of a new campaign
+    tiny = definitions.Campaign("sb3", (TASK,), ("ppo", "opr"), (0, 1), 4000, 2000, 2)
+    study = storage.open_study("mine", storage.storage_of("mine"), tiny)[0]
+    distributions = {name: CategoricalDistribution(list(getattr(tiny, name + "s"))) for name in ("task", "variant", "seed")}
+    for state, seed in ((TrialState.COMPLETE, 0), (TrialState.PRUNED, 0), (TrialState.RUNNING, 1), (TrialState.FAIL, 0)):
+        study.add_trial(optuna.create_trial(state=state, value=1.0 if state == TrialState.COMPLETE else None,
+                                            params={"task": TASK, "variant": "ppo" if seed else "opr", "seed": seed},
+                                            distributions=distributions))  # fmt: skip
+    commands.campaign_main(["status"])
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == [*definitions.CAMPAIGNS, "mine"]
+    assert lines[-1] == f"{'mine':38s} sb3     1 tasks x 2 variants x 2 seeds, 4,000 steps: 1/4 complete, 1 running"
+    assert lines[0] == f"{'table1':38s} paper   6 tasks x 2 variants x 5 seeds, 1,000,000 steps: 0/60 complete"
+    assert [path.name for path in tmp_path.iterdir()] == ["mine.journal"]  # none made for the campaigns not started
+    for command in ("run", "work"):
+        assert f"{command} needs --campaign (campaign.py status without it lists" in _refused(
+            commands.campaign_main, capsys, command
+        )
+    assert "status needs --campaign" in _refused(commands.campaign_main, capsys, "status", *_definition("ppo"))
 
 
 def test_a_stored_definition_given_again_is_read_as_it_was(tmp_path, capsys):

@@ -15,7 +15,7 @@ from . import training_logs, zoo_report
 from .deadline import UNTIL_FORMS, parse_until
 from .definitions import CAMPAIGNS, OFF_POLICY, VARIANTS, ZOO_VARIANTS, Campaign
 from .report import report, summary
-from .results import status
+from .results import overview, status
 from .storage import is_stored, open_study, storage_of
 from .workers import run, unmakeable, work
 from .zoo import run_name
@@ -33,8 +33,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     """``campaign.py run|work|status``: a new campaign's definition stored first, where one is given."""
     parser = parser_of(description)
     parser.add_argument("command", choices=["run", "work", "status"])
-    parser.add_argument("--campaign", nargs="+", required=True,
-                        help=f"campaigns, run in this order: of {sorted(CAMPAIGNS)}, or a new name")  # fmt: skip
+    parser.add_argument("--campaign", nargs="+", default=None,
+                        help=f"campaigns, run in this order: of {sorted(CAMPAIGNS)}, or a new name (status without it: "
+                             "one line per campaign)")  # fmt: skip
     parser.add_argument("--storage", default=None, help=STORAGE_HELP)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: the cores)")
     parser.add_argument("--stale-after", type=float, default=1800.0,
@@ -58,6 +59,8 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     args = parser.parse_args(argv)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     defining = args.protocol or args.tasks or args.variants or args.seeds or args.timesteps
+    if args.campaign is None and (args.command != "status" or defining):
+        parser.error(f"{args.command} needs --campaign (campaign.py status without it lists the campaigns)")
     if not defining and (args.eval_freq, args.eval_episodes, args.conf) != (None, None, None):
         parser.error("--eval-freq, --eval-episodes and --conf belong to a new campaign's definition (with --protocol, ...)")
     if args.retry_raised and args.command != "run":
@@ -68,25 +71,10 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
         until = None if args.until is None else parse_until(args.until, passed=args.command == "work")
     except ValueError as error:
         parser.error(str(error))
-    given = None
-    if defining:
-        missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
-        if missing:
-            parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
-        if len(args.campaign) > 1:
-            parser.error("define one campaign at a time")
-        evaluation = (20_000 if args.eval_freq is None else args.eval_freq,
-                      10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
-        try:
-            given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
-                             *evaluation, args.conf)  # fmt: skip
-            if not is_stored(args.campaign[0], args.storage):  # a stored definition is read as it was
-                given.check_new()
-                problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
-                if problems:
-                    raise ValueError(f"these tasks cannot be trained here: {'; '.join(problems)}")
-        except ValueError as error:
-            parser.error(str(error))
+    given = definition(parser, args) if defining else None
+    if args.campaign is None:
+        overview(args.storage)
+        return
     try:  # an unknown campaign, or one given again with another definition
         opened(args.campaign, args.storage, given)
     except ValueError as error:
@@ -101,6 +89,28 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
             sys.stdout.flush()  # here, not at exit: the last block may find the pipe closed too
         except BrokenPipeError:  # read through head or less, which stopped reading: nothing is wrong
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit would raise again
+
+
+def definition(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Campaign:
+    """The campaign the command line defines (checked as a new one where the storage does not hold it yet)."""
+    missing = [n for n in ("protocol", "tasks", "variants", "seeds", "timesteps") if getattr(args, n) is None]
+    if missing:
+        parser.error(f"a campaign's definition needs --{' --'.join(missing)} as well")
+    if len(args.campaign) > 1:
+        parser.error("define one campaign at a time")
+    evaluation = (20_000 if args.eval_freq is None else args.eval_freq,
+                  10 if args.eval_episodes is None else args.eval_episodes)  # fmt: skip
+    try:
+        given = Campaign(args.protocol, tuple(args.tasks), tuple(args.variants), tuple(args.seeds), args.timesteps,
+                         *evaluation, args.conf)  # fmt: skip
+        if not is_stored(args.campaign[0], args.storage):  # a stored definition is read as it was
+            given.check_new()
+            problems = unmakeable(given.protocol, given.tasks)  # before the definition is stored for good
+            if problems:
+                raise ValueError(f"these tasks cannot be trained here: {'; '.join(problems)}")
+    except ValueError as error:
+        parser.error(str(error))
+    return given
 
 
 def opened(names: list[str], storage: str | None, given: Campaign | None = None) -> list[Campaign]:

@@ -7,8 +7,20 @@ from typing import Any
 import numpy as np
 from optuna.trial import TrialState
 
-from .definitions import Campaign
-from .storage import deaths, done, grid_states, on_database, open_study, raised, retried_enough, storage_of
+from .definitions import CAMPAIGNS, Campaign
+from .storage import (
+    deaths,
+    done,
+    grid_states,
+    is_stored,
+    on_database,
+    open_study,
+    raised,
+    retried_enough,
+    running,
+    storage_of,
+    stored_names,
+)
 
 #: task -> variant -> the user attributes of its completed runs, one per seed
 Runs = dict[str, dict[str, list[dict[str, Any]]]]
@@ -140,6 +152,19 @@ def status(names: list[str], storage: str | None, workers: int) -> None:
     print(expected_duration(runs, progress, campaigns, workers))
 
 
+def overview(storage: str | None) -> None:
+    """One line per campaign, the repository's and those the storage holds: its grid and how much of it is done."""
+    for name in dict.fromkeys([*CAMPAIGNS, *stored_names(storage)]):
+        if is_stored(name, storage):
+            study, campaign = open_study(name, storage_of(name, storage))
+            complete, active = done(study, campaign), running(study, campaign)
+        else:  # not started: no journal file is created to say so
+            campaign, complete, active = CAMPAIGNS[name], 0, 0
+        grid = f"{len(campaign.tasks)} tasks x {len(campaign.variants)} variants x {len(campaign.seeds)} seeds"
+        counts = f"{complete}/{len(campaign.grid)} complete" + (f", {active} running" if active else "")
+        print(f"{name:38s} {campaign.protocol:7s} {grid}, {campaign.timesteps:,} steps: {counts}")
+
+
 def status_of(name: str, storage: str | None) -> None:
     """A campaign's grid points complete, its trials by state, and each grid point's trials."""
     study, campaign = open_study(name, storage_of(name, storage))
@@ -166,6 +191,9 @@ def trial_outcome(trial: Any, database: bool = False) -> str:
           if {"steps", "cpu_s"} <= progress.keys() else "")  # fmt: skip
     if trial.state == TrialState.RUNNING and at:
         return f" ({at})"
+    if trial.state == TrialState.PRUNED:  # a worker drew a grid point another trial held
+        held = trial.user_attrs.get("duplicate_of")
+        return " (a duplicate)" if held is None else f" (a duplicate of #{held})"
     if trial.state != TrialState.FAIL:
         return ""
     if trial.user_attrs.get("interrupted"):

@@ -66,6 +66,15 @@ def is_stored(campaign: str, storage: str | None = None) -> bool:
     return campaign in {summary.study_name for summary in optuna.get_all_study_summaries(storage_of(campaign, storage))}
 
 
+def stored_names(storage: str | None = None) -> list[str]:
+    """The campaigns a storage holds: a database's studies, a journal file's, or the repository's journal files."""
+    if storage and "://" in storage:
+        return optuna.get_all_study_names(storage_of("", storage))
+    if storage:
+        return optuna.get_all_study_names(storage_of("", storage)) if pathlib.Path(storage).exists() else []
+    return sorted(path.stem for path in CAMPAIGN_DIR.glob("*.journal"))
+
+
 def open_study(
     name: str, storage: optuna.storages.BaseStorage, given: Campaign | None = None
 ) -> tuple[optuna.Study, Campaign]:
