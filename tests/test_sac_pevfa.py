@@ -15,7 +15,9 @@ from stable_baselines3.common.envs import BitFlippingEnv, FakeImageEnv
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
+from stable_baselines3.common.vec_env import VecNormalize
 from torch.nn import functional as F
 
 from sb3_pevfa.pevfa import records as record_utils
@@ -486,9 +488,14 @@ def test_spr_refuses_images_which_the_other_representations_take(pevfa_class):
     with pytest.raises(ValueError, match=r"^representation='spr' does not support image observations"):
         pevfa_class("CnnPolicy", env, representation="spr", buffer_size=100)
     model = pevfa_class("CnnPolicy", env, representation="fingerprint", buffer_size=100, **tiny())
-    model.learn(110)  # the probes are the CNN's features
-    representation = model.policy.critic.representation
-    assert bool(representation.probes_set) and representation.probes.shape == (32, model.actor.features_dim)
+    model.learn(101)  # one gradient step, then the first snapshot: its probes, the CNN's features of 32 replay rows
+    representation, rows = model.policy.critic.representation, np.arange(32) * 100 // 32
+    with th.no_grad():
+        features = model.actor.extract_features(
+            th.as_tensor(model.replay_buffer.observations[rows, 0]), model.actor.features_extractor
+        )
+    assert bool(representation.probes_set) and features.shape == (32, model.actor.features_dim)
+    th.testing.assert_close(representation.probes.detach(), features, atol=0, rtol=0)
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
@@ -498,6 +505,73 @@ def test_an_unknown_policy_argument_is_named_with_the_closest_valid_ones(pevfa_c
     unknown = r"got an unexpected keyword argument 'critic_combine'; did you mean 'critic_embedding_arch'\?$"
     with pytest.raises(TypeError, match=f"{where} {unknown}"):
         pevfa_class("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_combine="product"))
+
+
+def test_a_policy_subclass_passes_sb3_arguments_its_own_signature_does_not_list():
+    """An SB3-style subclass with a fixed signature that sets SB3's arguments itself (the check reads SB3's)."""
+    from sb3_pevfa.sac_pevfa import SACPeVFAPolicy
+
+    class Narrow(SACPeVFAPolicy):
+        def __init__(self, observation_space, action_space, lr_schedule, use_sde=False, representation="opr",
+                     embedding_dim=64, representation_kwargs=None, n_state_action_pairs=200):  # fmt: skip
+            pevfa = dict(representation=representation, embedding_dim=embedding_dim,
+                         representation_kwargs=representation_kwargs, n_state_action_pairs=n_state_action_pairs)  # fmt: skip
+            super().__init__(observation_space, action_space, lr_schedule, use_sde=use_sde, net_arch=[16, 16], **pevfa)
+
+    model = SACPeVFA(Narrow, "Pendulum-v1", learning_starts=10, batch_size=8)
+    assert model.policy.net_arch == [16, 16]
+    model.learn(20)
+
+
+class Wider(BaseFeaturesExtractor):
+    """Pendulum's 3 observations to 8 features."""
+
+    def __init__(self, observation_space):
+        super().__init__(observation_space, 8)
+        self.net = th.nn.Sequential(th.nn.Flatten(), th.nn.Linear(3, 8))
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return self.net(observations)
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_spr_refuses_features_that_are_not_the_flattened_observation(pevfa_class):
+    with pytest.raises(ValueError, match=r"^representation='spr' pairs actions with the flattened observations \(3 "
+                       r"values\), which the actor's features extractor maps to 8: use 'opr', 'fingerprint'"):  # fmt: skip
+        pevfa_class("MlpPolicy", "Pendulum-v1", representation="spr", policy_kwargs=dict(features_extractor_class=Wider))
+    pevfa_class("MlpPolicy", "Pendulum-v1", representation="opr", policy_kwargs=dict(features_extractor_class=Wider))
+
+
+def test_hers_transitions_are_shuffled_before_the_snapshots_share_them(monkeypatch):
+    """HER samples its real transitions first and the relabelled ones last: each snapshot gets rows of both."""
+    from sb3_pevfa.pevfa import off_policy
+
+    calls = []
+
+    def spied(data):
+        calls.append(data)
+        return shuffle(data)
+
+    shuffle = off_policy.shuffled
+    monkeypatch.setattr(off_policy, "shuffled", spied)
+    env = make_vec_env(BitFlippingEnv, n_envs=1, seed=0, env_kwargs=dict(n_bits=4, continuous=True))
+    her = SACPeVFA("MultiInputPolicy", env, replay_buffer_class=HerReplayBuffer, snapshot_freq=10, **tiny())
+    her.learn(150)
+    plain = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, **tiny())
+    plain.learn(150)
+    assert len(calls) == her._n_history_updates > 0  # every snapshots' update of the HER run, none of the other
+    assert type(calls[-1]).__name__ == "DictReplayBufferSamples"
+    n = 64  # a batch whose rows say where they came from
+    rows = th.arange(n, dtype=th.float32)[:, None]
+    data = DictReplayBufferSamples({"a": rows, "b": rows + 1}, 2 * rows, {"a": rows + 100, "b": rows}, rows % 2, 3 * rows)
+    mixed = shuffle(data)
+    order = mixed.actions[:, 0].long() // 2
+    assert sorted(order.tolist()) == list(range(n)) and order.tolist() != list(range(n))  # the rows, in another order
+    for got, given in zip(mixed, data):  # each field's rows moved together
+        if isinstance(given, dict):
+            assert all(th.equal(got[key], given[key][order]) for key in given)
+        else:  # n-step discounts: None unless SB3's n-step buffer gives them
+            assert th.equal(got, given[order]) if given is not None else got is None
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
@@ -521,6 +595,10 @@ def test_learning_on_without_the_snapshots_warns_where_they_are(tmp_path, pevfa_
         early = pevfa_class("MlpPolicy", "Pendulum-v1", **tiny())
         early.learn(50)  # no update, no snapshot yet: none to lose
         early.learn(10, reset_num_timesteps=False)
+        unread = pevfa_class("MlpPolicy", "Pendulum-v1", history_train_freq=0, **tiny())
+        unread.learn(120)
+        unread.save(tmp_path / "unread")
+        pevfa_class.load(tmp_path / "unread", env=model.get_env()).learn(10, reset_num_timesteps=False)  # none read
 
 
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
@@ -646,14 +724,16 @@ def test_the_fingerprint_reads_each_actors_outputs_at_probes_set_from_the_replay
     pevfa_class, n_envs, buffer_size, stored, dict_obs
 ):
     env = make_vec_env(DictPendulum if dict_obs else "Pendulum-v1", n_envs=n_envs, seed=0)
+    env = VecNormalize(env) if dict_obs else env  # a Dict's rows as the actor read them: normalised
     policy = "MultiInputPolicy" if dict_obs else "MlpPolicy"
     model = pevfa_class(policy, env, representation="fingerprint", buffer_size=buffer_size, **tiny())
     model.learn(101)  # one gradient step: the first snapshot set the probes, 32 evenly spaced of the rows stored
     representation = model.policy.critic.representation
     rows = np.arange(32) * stored // 32  # a full buffer (100 rows, wrapped once): all its rows; env row % n_envs
-    stored = model.replay_buffer.observations  # a Dict's: its keys' rows side by side, in the space's order
-    expected = th.as_tensor(np.concatenate([stored[key] for key in ("angle", "speed")], axis=-1) if dict_obs else stored)
-    expected = expected[rows, rows % n_envs]
+    stored = record_utils.rows(model.replay_buffer.observations, (rows, rows % n_envs))
+    if dict_obs:  # its keys' rows side by side, in the space's order, normalised
+        stored = np.concatenate([env.normalize_obs(stored)[key] for key in ("angle", "speed")], axis=-1)
+    expected = th.as_tensor(stored)
     assert bool(representation.probes_set) and th.equal(model.policy.critic_target.representation.probes, expected)
     snapshot, records, _, _ = snapshot_then_move_on(model)
     probes = representation.probes.detach()

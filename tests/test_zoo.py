@@ -327,9 +327,18 @@ def test_the_users_conf_file_in_any_form_rl_zoo3_reads_wins_and_our_flag_is_read
     with pytest.raises(SystemExit, match="No shipped sac_pevfa hyperparameters for MountainCarContinuous-v0"):
         run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo=sac_pevfa", "--env=MountainCarContinuous-v0"], True)
     run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "td3_pevfa", "--env", "BipedalWalker-v3"], True)
+    # rl-zoo3's entries the shipped files leave out: why, rather than training them with the shipped default
+    bullet = r"for HalfCheetahBulletEnv-v0: rl-zoo3's td3.yml entry for it is left out \(PyBullet's, MiniGrid's and"
+    with pytest.raises(SystemExit, match=bullet):
+        run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "td3_pevfa", "--env", "HalfCheetahBulletEnv-v0"], True)
+    with pytest.raises(SystemExit, match=r"for Hopper-v4: rl-zoo3's sac.yml entry for it is shipped as Hopper-v5's\."):
+        run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--env", "Hopper-v4"], True)
+    with pytest.raises(SystemExit, match=r"for MiniGrid-DoorKey-5x5-v0: rl-zoo3's ppo.yml entry for it is left out"):
+        run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "ppo_pevfa", "--env", "MiniGrid-DoorKey-5x5-v0"], True)
+    run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--env", "Reacher-v5"], True)  # default
     if given:  # with an entry of the user's, it runs
         run_zoo_script(lambda: seen.append(sys.argv[1:]), ["--algo", "sac_pevfa", "--env", "BipedalWalker-v3", *given], True)
-    assert len(seen) == 3 + bool(given)
+    assert len(seen) == 4 + bool(given)
 
 
 def test_help_shows_our_flag_and_the_python_way_of_the_docs_works(tmp_path):

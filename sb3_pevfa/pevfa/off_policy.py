@@ -19,6 +19,7 @@ import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 from torch.nn import functional as F
 
 from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
@@ -64,6 +65,12 @@ def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
             f"history_batch_size ({arguments['history_batch_size']}) must be a multiple of history_batch_policies "
             f"({arguments['history_batch_policies']}): each snapshot gets as many transitions"
         )
+
+
+def shuffled(data: Any) -> Any:
+    """Replay samples (SB3's named tuple of tensors, or dicts of them) in a random order of their rows."""
+    order = th.randperm(len(data.actions), device=data.actions.device)
+    return type(data)(*(rows(field, order) if field is not None else None for field in data))
 
 
 def snapshots_path(replay_buffer_path: str | pathlib.Path) -> pathlib.Path:
@@ -175,7 +182,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         self._require_env()
         if reset_num_timesteps:  # SB3 counts the episodes anew
             self._snapshot_episodes = 0
-        elif self._n_updates and not self.history.n_policies:  # a loaded model: its snapshots travel with its buffer
+        elif self._n_updates and self.history_train_freq and not self.history.n_policies:  # they travel with the buffer
             warnings.warn(
                 f"{type(self).__name__} learns on from {self.num_timesteps} steps ({self._n_updates} updates) without "
                 "its snapshots: load_replay_buffer (or load_history) brings those saved with save_replay_buffer",
@@ -282,6 +289,8 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         n_policies = len(ids)
         per_policy = self.history_batch_size // self.history_batch_policies
         data = self.replay_buffer.sample(per_policy * n_policies, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        if isinstance(self.replay_buffer, HerReplayBuffer):  # its real transitions come first, the relabelled last
+            data = shuffled(data)
         records = PolicyRecord.from_numpy(self.history.records(ids), self.device)
         pairing = th.arange(n_policies, device=self.device).repeat_interleave(per_policy)  # snapshot of each transition
         with th.no_grad():

@@ -28,7 +28,7 @@ from torch.nn import functional as F
 from sb3_pevfa.common.checks import check_argument_names, init_parameters
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
-from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, state_dim
+from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, state_dim
 from sb3_pevfa.pevfa.representations import make_representation
 
 #: Representations an off-policy critic can read: the actor's parameters, its actions at replay states, its outputs
@@ -313,8 +313,10 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         fused_critic_optimizer: bool = True,
         **kwargs: Any,
     ):
-        # SB3's own TypeError would name SB3's policy class, without the valid names
-        check_argument_names(kwargs, init_parameters(type(self)), f"{type(self).__name__}() (policy_kwargs)")
+        # what reaches SB3's policy (a subclass may pass its own): SB3's TypeError would name no valid one
+        sb3 = next(klass for klass in type(self).__mro__ if klass.__module__.startswith("stable_baselines3"))
+        valid = init_parameters(sb3) | init_parameters(PeVFAQPolicyMixin)
+        check_argument_names(kwargs, valid, f"{type(self).__name__}() (policy_kwargs)")
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
         if isinstance(n_state_action_pairs, bool) or not isinstance(n_state_action_pairs, (int, np.integer)):
@@ -375,6 +377,14 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> PeVFAContinuousCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)  # type: ignore[attr-defined]
+        observation_space = self.observation_space  # type: ignore[attr-defined]
+        features_dim, observation_dim = critic_kwargs["features_dim"], state_dim(observation_space)
+        mismatched = features_dim != observation_dim and not has_image(observation_space)  # images: SPR's own refusal
+        if self.representation_name == "spr" and mismatched:
+            raise ValueError(
+                f"representation='spr' pairs actions with the flattened observations ({observation_dim} values), which "
+                f"the actor's features extractor maps to {features_dim}: use 'opr', 'fingerprint', 'random' or 'none'"
+            )
         layout = ActorLayout.from_policy(self)  # type: ignore[arg-type]
         critic = PeVFAContinuousCritic(**critic_kwargs, layout=layout, actor_holder=(self,), **self.pevfa_kwargs)
         return critic.to(self.device)  # type: ignore[attr-defined]

@@ -132,7 +132,7 @@ class SurfacePolicyRepresentation(PolicyRepresentation):
     ):
         super().__init__(embedding_dim)
         if has_image(observation_space):
-            raise ValueError("representation='spr' does not support image observations; use 'opr', 'stats' or 'none'")
+            raise ValueError("representation='spr' does not support image observations; use 'opr', 'random' or 'none'")
         if not 0.0 < subsample <= 1.0:
             raise ValueError(f"subsample must be in (0, 1], got {subsample}")
         self.action_space = action_space

@@ -29,6 +29,28 @@ LEFT_OUT = {
 }
 
 
+def left_out(algo: str, env: str | None) -> str | None:
+    """Why the shipped hyperparameters of ``algo`` have no entry for ``env`` where rl-zoo3's have one (its own
+    fallback, the shipped ``default``, would otherwise train it in settings other than rl-zoo3's entry); None where
+    they have one, or rl-zoo3 has none either."""
+    import rl_zoo3
+    import yaml
+
+    shipped = yaml.safe_load(HYPERPARAMS_PATHS[algo].read_text()) if algo in HYPERPARAMS_PATHS else {}
+    if env is None or not shipped or env in shipped:
+        return None
+    if env in LEFT_OUT.get(algo, {}):
+        return LEFT_OUT[algo][env]
+    base = algo.removesuffix("_pevfa")
+    if env not in yaml.safe_load((pathlib.Path(rl_zoo3.__file__).parent / "hyperparams" / f"{base}.yml").read_text()):
+        return None
+    versions = [name for name in shipped if name.rpartition("-v")[0] == env.rpartition("-v")[0]]
+    if versions:  # rl-zoo3's entry of an older version, shipped for the current one
+        return f"rl-zoo3's {base}.yml entry for it is shipped as {versions[0]}'s"
+    return (f"rl-zoo3's {base}.yml entry for it is left out (PyBullet's, MiniGrid's and third-party tasks are not "
+            "dependencies of the package), and the shipped 'default' would train it otherwise")  # fmt: skip
+
+
 def register() -> None:
     """Add the PeVFA algorithms (:data:`ALGORITHMS`) to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), Optuna sampler
     table and trial converter table (``rl_zoo3.hyperparams_opt``). These module-level dicts are shared by ``train``, ``enjoy``,
@@ -73,7 +95,7 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
                 f"  (--algo {' / '.join(ALGORITHMS)} read {HYPERPARAMS_PATHS[ALGO_NAME].parent} unless --conf-file is given)\n"
             )
         if given.algo in HYPERPARAMS_PATHS and given.conf_file is None:
-            why = LEFT_OUT.get(given.algo, {}).get(given.env)
+            why = left_out(given.algo, given.env)
             if why is not None:
                 raise SystemExit(f"No shipped {given.algo} hyperparameters for {given.env}: {why}. Give an entry of your "
                                  "own with --conf-file.")  # fmt: skip
