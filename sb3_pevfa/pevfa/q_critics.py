@@ -20,7 +20,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, create_mlp
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN, create_mlp
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 from torch.nn import functional as F
@@ -272,6 +272,22 @@ class PeVFAContinuousCritic(BaseModel):
             features = self.extract_features(obs, self.features_extractor)
         chi = self.live_embedding(grad=False) if chi is None else chi
         return self.q_networks[0](th.cat([features, actions], dim=1), chi)
+
+
+class CnnPolicyMixin:
+    """SB3's ``CnnPolicy``: a policy whose features extractor is ``NatureCNN`` by default. The CNN is not part of a
+    snapshot (the layout records the actor's linear layers)."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class MultiInputPolicyMixin:
+    """SB3's ``MultiInputPolicy``: a policy for Dict observations, its features extractor ``CombinedExtractor`` by
+    default."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
 
 
 class PeVFAQPolicyMixin(OnePassTrainingMode):

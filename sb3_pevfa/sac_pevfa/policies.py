@@ -1,13 +1,10 @@
 """SAC's policies with a policy-extended twin critic Q(s, a, chi_pi)."""
 
-from typing import Any
-
 import torch as th
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
-from sb3_pevfa.pevfa.q_critics import PeVFAQPolicyMixin
+from sb3_pevfa.pevfa.q_critics import CnnPolicyMixin, MultiInputPolicyMixin, PeVFAQPolicyMixin
 
 
 class SACPeVFAPolicy(PeVFAQPolicyMixin, SACPolicy):
@@ -24,19 +21,12 @@ class SACPeVFAPolicy(PeVFAQPolicyMixin, SACPolicy):
         return th.tanh(self.actor.mu(self.actor.latent_pi(features)))
 
 
-class SACPeVFACnnPolicy(SACPeVFAPolicy):
-    """:class:`SACPeVFAPolicy` for images (SB3's ``NatureCNN``), as SB3's SAC ``CnnPolicy``; the CNN is not part of a
-    snapshot (the layout records the actor's linear layers)."""
-
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+class SACPeVFACnnPolicy(CnnPolicyMixin, SACPeVFAPolicy):
+    """:class:`SACPeVFAPolicy` for images, as SB3's SAC ``CnnPolicy``."""
 
 
-class SACPeVFAMultiInputPolicy(SACPeVFAPolicy):
-    """:class:`SACPeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's SAC ``MultiInputPolicy``."""
-
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+class SACPeVFAMultiInputPolicy(MultiInputPolicyMixin, SACPeVFAPolicy):
+    """:class:`SACPeVFAPolicy` for Dict observations, as SB3's SAC ``MultiInputPolicy``."""
 
 
 MlpPolicy = SACPeVFAPolicy

@@ -1,13 +1,10 @@
 """TD3's policies with a policy-extended twin critic Q(s, a, chi_pi)."""
 
-from typing import Any
-
 import torch as th
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
-from sb3_pevfa.pevfa.q_critics import PeVFAQPolicyMixin
+from sb3_pevfa.pevfa.q_critics import CnnPolicyMixin, MultiInputPolicyMixin, PeVFAQPolicyMixin
 
 
 class TD3PeVFAPolicy(PeVFAQPolicyMixin, TD3Policy):
@@ -30,19 +27,12 @@ class TD3PeVFAPolicy(PeVFAQPolicyMixin, TD3Policy):
         return self.actor.mu(features)
 
 
-class TD3PeVFACnnPolicy(TD3PeVFAPolicy):
-    """:class:`TD3PeVFAPolicy` for images (SB3's ``NatureCNN``), as SB3's TD3 ``CnnPolicy``; the CNN is not part of a
-    snapshot (the layout records the actor's linear layers)."""
-
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+class TD3PeVFACnnPolicy(CnnPolicyMixin, TD3PeVFAPolicy):
+    """:class:`TD3PeVFAPolicy` for images, as SB3's TD3 ``CnnPolicy``."""
 
 
-class TD3PeVFAMultiInputPolicy(TD3PeVFAPolicy):
-    """:class:`TD3PeVFAPolicy` for Dict observations (SB3's ``CombinedExtractor``), as SB3's TD3 ``MultiInputPolicy``."""
-
-    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any):
-        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+class TD3PeVFAMultiInputPolicy(MultiInputPolicyMixin, TD3PeVFAPolicy):
+    """:class:`TD3PeVFAPolicy` for Dict observations, as SB3's TD3 ``MultiInputPolicy``."""
 
 
 MlpPolicy = TD3PeVFAPolicy
