@@ -8,7 +8,7 @@ from conftest import FAST, read_progress
 from stable_baselines3.common.logger import configure
 from torch.nn import functional as F
 
-from sb3_pevfa import PolicyRecord, PPOPeVFA
+from sb3_pevfa import A2CPeVFA, PolicyRecord, PPOPeVFA
 from sb3_pevfa.diagnostics import (
     LocalGeneralizationCallback,
     embedding_maps,
@@ -175,6 +175,18 @@ def test_zero_shot_values(tmp_path, representation):
             predict_policy_values(model, latest["params"], obs)
     with pytest.raises(ValueError, match="differs"):
         predict_policy_values(model, PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])), obs)
+
+
+def test_zero_shot_values_of_a_saved_a2c_pevfa_or_sb3_model_read_from_its_path(tmp_path):
+    from stable_baselines3 import A2C, PPO
+
+    model = PPOPeVFA("MlpPolicy", "Pendulum-v1", **FAST).learn(192)
+    obs = np.stack([model.observation_space.sample() for _ in range(5)])
+    for seed, other_class in enumerate((A2CPeVFA, PPO, A2C)):
+        other = other_class("MlpPolicy", "Pendulum-v1", seed=seed)
+        other.save(tmp_path / "other")
+        from_path = predict_policy_values(model, tmp_path / "other.zip", obs)
+        np.testing.assert_allclose(from_path, predict_policy_values(model, other, obs), rtol=1e-6)
 
 
 def test_embedding_maps_and_episode_returns_of_sacpevfa_snapshots(tmp_path):

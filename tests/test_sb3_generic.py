@@ -489,6 +489,13 @@ def test_a_misspelt_argument_and_a_missing_env_are_named(tmp_path, algorithm):
     typo = "history_train_frq"
     with pytest.raises(TypeError, match=rf"{cls.__name__}.load\(\) got .* '{typo}'; did you mean 'history_train_freq'"):
         cls.load(tmp_path / "model", **{typo: 2})
+    with pytest.raises(TypeError, match=r"load\(\) got an unexpected keyword argument 'restore_rng'; did you mean "
+                       r"'restore_rng_state'\?"):  # fmt: skip
+        cls.load(tmp_path / "model", restore_rng=True)
+    refused = rf"^{cls.__name__}.load\(\) takes an env, not the id 'Pendulum-v1' .*: pass make_vec_env\('Pendulum-v1'\) or"
+    for given in (dict(env="Pendulum-v1"), {}):  # an id, by keyword or in SB3's place of the env
+        with pytest.raises(ValueError, match=refused + r" gymnasium.make\('Pendulum-v1'\), or env=None$"):
+            cls.load(tmp_path / "model", *([] if given else ["Pendulum-v1"]), **given)
     loaded = cls.load(tmp_path / "model", history_train_freq=2, seed=3, device="cpu", force_reset=False)
     assert loaded.history_train_freq == 2 and loaded.seed == 3  # the constructor's arguments, SB3's load's
     with pytest.raises(ValueError, match=rf"{cls.__name__} has no env to learn on .* pass env= to load\(\)"):

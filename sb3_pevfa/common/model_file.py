@@ -60,11 +60,18 @@ class ModelFile:
             saved run would have
         """
         custom_objects = args[2] if len(args) > 2 else kwargs.get("custom_objects")  # SB3's (env, device, ...)
+        env = args[0] if args else kwargs.get("env")
+        if isinstance(env, str):  # SB3 would say Gym is missing
+            raise ValueError(
+                f"{cls.__name__}.load() takes an env, not the id {env!r} (the constructor takes ids): pass "
+                f"make_vec_env({env!r}) or gymnasium.make({env!r}), or env=None"
+            )
         text, data = cls._stored_data(path)
         if text is not None:  # else SB3's load says why the file cannot be read
             # SB3 sets any keyword argument on the model; here, as in the constructor, a name must be an argument of
             # the class or an attribute the file holds (a misspelt one would be set and never read)
-            check_argument_names(kwargs, init_parameters(cls) | set(data) | SB3_LOAD_PARAMETERS, f"{cls.__name__}.load()")
+            valid = init_parameters(cls) | set(data) | SB3_LOAD_PARAMETERS | {"restore_rng_state"}  # for its suggestions
+            check_argument_names(kwargs, valid, f"{cls.__name__}.load()")
             saved_by = data.get("_sb3_algorithm", sb3_algorithm(cls))  # files of earlier versions: not stored
             if saved_by != sb3_algorithm(cls):  # PPOPeVFA's and A2CPeVFA's share their policy class
                 raise TypeError(

@@ -4,6 +4,7 @@ import pathlib
 
 import numpy as np
 import torch as th
+from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import get_action_dim
@@ -17,10 +18,8 @@ PolicyLike = ActorCriticPolicy | BaseAlgorithm | str | pathlib.Path | dict | np.
 
 def _record(model, policy: PolicyLike, observations) -> dict[str, np.ndarray]:
     """The record of ``policy``, as the history stores it."""
-    if isinstance(policy, (str, pathlib.Path)):
-        from sb3_pevfa import PPOPeVFA
-
-        policy = PPOPeVFA.load(policy, device=model.device)
+    if isinstance(policy, (str, pathlib.Path)):  # PPOPeVFA's, A2CPeVFA's or SB3's PPO's or A2C's: SB3's PPO reads
+        policy = PPO.load(policy, device=model.device).policy  # any of their policies (each file names its class)
     if isinstance(policy, BaseAlgorithm):
         policy = policy.policy
     if isinstance(policy, ActorCriticPolicy):
