@@ -20,7 +20,7 @@ SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"
 
 
 def sb3_base(cls: type) -> type:
-    """The SB3 algorithm class ``cls`` is based on (``PPO``, ``A2C``, ``SAC``, ``TD3``)."""
+    """The SB3 class ``cls`` is based on (``PPO``, ``A2C``, ``SAC``, ``TD3``; for a policy, SB3's policy class)."""
     return next(klass for klass in cls.__mro__ if klass.__module__.startswith("stable_baselines3"))
 
 

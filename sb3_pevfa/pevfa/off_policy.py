@@ -23,7 +23,7 @@ from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 from torch.nn import functional as F
 
 from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
-from sb3_pevfa.common.model_file import ModelFile
+from sb3_pevfa.common.model_file import ModelFile, sb3_algorithm
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
 from sb3_pevfa.pevfa.history import PolicyHistory
@@ -124,7 +124,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
     ):
         """The PeVFA arguments (see the algorithm's docstring); the rest are the SB3 base's, by keyword."""
         if not isinstance(representation, str):  # SB3's third positional argument is its learning rate
-            base = next(c.__name__ for c in type(self).__mro__ if c.__module__.startswith("stable_baselines3"))
+            base = sb3_algorithm(type(self))
             raise TypeError(
                 f"representation must be one of {OFF_POLICY_REPRESENTATIONS}, got {representation!r}: after the env come "
                 f"the PeVFA arguments; pass {base}'s own (learning_rate, ...) by keyword"

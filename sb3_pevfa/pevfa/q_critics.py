@@ -26,6 +26,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_pevfa.common.checks import check_argument_names, init_parameters
+from sb3_pevfa.common.model_file import sb3_base
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, has_image, state_dim
@@ -330,8 +331,7 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         **kwargs: Any,
     ):
         # what reaches SB3's policy (a subclass may pass its own): SB3's TypeError would name no valid one
-        sb3 = next(klass for klass in type(self).__mro__ if klass.__module__.startswith("stable_baselines3"))
-        valid = init_parameters(sb3) | init_parameters(PeVFAQPolicyMixin)
+        valid = init_parameters(sb3_base(type(self))) | init_parameters(PeVFAQPolicyMixin)
         check_argument_names(kwargs, valid, f"{type(self).__name__}() (policy_kwargs)")
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
