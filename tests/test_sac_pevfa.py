@@ -122,10 +122,17 @@ def test_no_gradient_reaches_the_actor_through_its_embedding(live_encoder_gradie
     assert all(p.grad is None for p in model.policy.actor.parameters())  # chi of the live actor carries none to it
     encoder_grads = [p.grad is not None and p.grad.abs().sum() > 0 for p in critic.representation.parameters()]
     assert any(encoder_grads) == live_encoder_gradient  # the live critic loss trains the encoder only where asked
-    actions_pi = model.policy.actor(observations).requires_grad_()  # the actor's loss: no gradient into the encoder
+    th.manual_seed(1)  # the actor's loss, its sampled actions: no gradient into the encoder
+    actions_pi = model.policy.actor(observations)
     model.policy.zero_grad(set_to_none=True)
     sum(q.sum() for q in critic(observations, actions_pi)).backward()
     assert all(p.grad is None for p in critic.representation.parameters())
+    through_actions = [p.grad.clone() for p in model.policy.actor.parameters()]
+    model.policy.zero_grad(set_to_none=True)  # the same loss with chi of the live actor a constant: the same gradients
+    th.manual_seed(1)
+    actions_pi = model.policy.actor(observations)
+    sum(q.sum() for q in critic(observations, actions_pi, chi=chi.detach())).backward()
+    assert all(th.equal(p.grad, g) for p, g in zip(model.policy.actor.parameters(), through_actions))
 
 
 def test_the_encoder_learns_from_the_live_critic_loss_only_where_asked():
@@ -451,6 +458,8 @@ def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_
     [
         (dict(representation="rpr"), r"valid choices: \('opr', 'spr', 'fingerprint', 'random', 'none'\)"),
         (dict(representation="spr", n_state_action_pairs=0), "spr' needs n_state_action_pairs > 0"),
+        (dict(representation="spr", n_state_action_pairs=16.0), r"n_state_action_pairs must be an int, got 16.0"),
+        (dict(embedding_dim=0), "embedding_dim must be a positive int, got 0"),
         (dict(snapshot_freq=0), "snapshot_freq must be an int >= 1"),
         (dict(snapshot_freq=10.0), r"snapshot_freq must be an int >= 1, got 10.0"),
         (dict(history_max_policies=0), "history_max_policies must be an int >= 1"),
@@ -623,7 +632,7 @@ def test_numpy_ints_are_ints():
     counts = dict(snapshot_freq=10, history_max_policies=5, history_train_freq=0, history_batch_size=64,
                   history_batch_policies=8, history_learning_starts=0)  # fmt: skip
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", **{name: np.int64(value) for name, value in counts.items()})
-    assert all(getattr(model, name) == value for name, value in counts.items())
+    assert all(type(getattr(model, name)) is int and getattr(model, name) == value for name, value in counts.items())
 
 
 @pytest.mark.parametrize(("pevfa_class", "base"), [(SACPeVFA, "SAC"), (TD3PeVFA, "TD3")])

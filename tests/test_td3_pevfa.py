@@ -28,3 +28,15 @@ def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_g
     model.policy.zero_grad(set_to_none=True)  # the same loss with chi a constant: the actor's gradients are the same
     (-critic.q1_forward(observations, actor(observations), chi=critic.live_embedding().detach()).mean()).backward()
     assert all(th.equal(p.grad, g) for p, g in zip(actor.parameters(), through_actions))
+
+
+def test_the_smoothed_target_action_is_clipped_to_the_action_bounds():
+    """TD3's target smoothing: clip(a + clip(noise, -c, c), -1, 1), the outer clip applied where a + noise leaves."""
+    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", target_policy_noise=0.4, target_noise_clip=0.3, **tiny())
+    actions = th.linspace(-0.95, 0.95, 64)[:, None]
+    th.manual_seed(0)
+    smoothed = model._smoothed(actions)
+    th.manual_seed(0)
+    noise = th.randn(64, 1).mul_(0.4).clamp_(-0.3, 0.3)
+    assert ((actions + noise).abs() > 1).any() and (noise.abs() == 0.3).any()  # both clips apply here
+    th.testing.assert_close(smoothed, (actions + noise).clamp(-1, 1), atol=0, rtol=0)
