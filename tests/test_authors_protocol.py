@@ -159,9 +159,10 @@ def test_monte_carlo_targets_and_gae_end_at_every_episode_end_and_at_the_cap():
 
 
 def test_the_actor_update_is_ten_full_batch_adam_steps():
-    model = _model((30, 17, 45), algorithm="ppo")
-    _rollout(model)
+    model = _model((150, 90), algorithm="ppo")
+    _rollout(model)  # whole episodes past n_steps = 200: one batch of 240, not n_steps
     buffer = model.rollout_buffer
+    assert buffer.buffer_size == 240
     observations = th.as_tensor(buffer.observations[:, 0])
     actions = th.as_tensor(buffer.actions[:, 0])
     old_log_prob = th.as_tensor(buffer.log_probs[:, 0])
@@ -178,6 +179,7 @@ def test_the_actor_update_is_ten_full_batch_adam_steps():
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+    assert model.max_grad_norm == float("inf") and model.ent_coef == 0.0  # too small here to show in the steps
     steps = []
     step = model.policy.optimizer.step
     model.policy.optimizer.step = lambda *a, **k: steps.append(1) or step(*a, **k)  # type: ignore[method-assign]
@@ -515,3 +517,43 @@ def test_sb3_s_truncated_minibatch_warning_only_where_an_update_takes_minibatche
     ]
     assert warned(actor_batch_size=500, rollout_episodes=None) == []
     assert warned(actor_batch_size=300) == []  # the protocol's rollouts of 5 whole episodes vary in size
+
+
+def test_an_update_fits_the_critic_as_theirs_then_computes_gae_from_it():
+    """``train``: 10 epochs of 4 minibatches of 37 (of 150 samples) on 0.5 * MSE to the Monte-Carlo returns with
+    Adam at 1e-3, written out (the package's MSE takes the same Adam steps up to its epsilon); then GAE from the
+    fitted critic's values; then the actor's update, the critic untouched."""
+    model = _model((30,), algorithm="ppo", history_train_freq=0)
+    _rollout(model)
+    buffer = model.rollout_buffer
+    observations, returns = th.as_tensor(buffer.observations[:, 0]), th.as_tensor(buffer.returns[:, 0])
+    rollout_values = buffer.values[:, 0].copy()
+    policy = copy.deepcopy(model.policy)
+    names = [name for name, p in model.policy.named_parameters() if any(p is q for q in model._critic_params)]
+    critic = [dict(policy.named_parameters())[name] for name in names]
+    optimizer = th.optim.Adam(critic, lr=1e-3, eps=1e-8)
+    np.random.seed(3)
+    for _ in range(10):
+        indices = np.random.permutation(150)
+        for start in range(0, 4 * 37, 37):
+            index = indices[start : start + 37]
+            loss = 0.5 * ((policy.predict_values(observations[index]).flatten() - returns[index]) ** 2).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    np.random.seed(3)
+    model.train()
+    ours = dict(model.policy.named_parameters())
+    for name, theirs in zip(names, critic):
+        assert (ours[name] - theirs).abs().max().item() <= 1e-6, name
+    with th.no_grad():
+        values = model.policy.predict_values(observations).flatten().numpy()
+    assert np.abs(values - rollout_values).max() > 0.1  # the fit moved the critic
+    np.testing.assert_allclose(buffer.values[:, 0], values, atol=1e-6)  # GAE read the fitted critic's values
+    next_values = np.append(values[1:], 0.0).reshape(5, 30)
+    next_values[:, -1] = 0.0
+    deltas = (1.0 + 0.99 * next_values.reshape(-1) - values).reshape(5, 30)
+    expected = np.zeros((5, 30), np.float32)
+    for t in reversed(range(30)):
+        expected[:, t] = deltas[:, t] + 0.99 * 0.95 * (expected[:, t + 1] if t < 29 else 0.0)
+    np.testing.assert_allclose(buffer.advantages[:, 0], expected.reshape(-1), rtol=1e-4, atol=1e-5)
