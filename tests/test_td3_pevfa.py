@@ -31,7 +31,7 @@ def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_g
 
 
 def test_the_smoothed_target_action_is_clipped_to_the_action_bounds():
-    """TD3's target smoothing: clip(a + clip(noise, -c, c), -1, 1), the outer clip applied where a + noise leaves."""
+    """TD3's target smoothing: clip(a + clip(noise, -c, c), -1, 1), the outer clip applied where a + noise leaves [-1, 1]."""
     model = TD3PeVFA("MlpPolicy", "Pendulum-v1", target_policy_noise=0.4, target_noise_clip=0.3, **tiny())
     actions = th.linspace(-0.95, 0.95, 64)[:, None]
     th.manual_seed(0)
