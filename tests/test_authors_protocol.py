@@ -50,6 +50,19 @@ def _model(lengths=(30,), algorithm="ppo_pevfa", max_episode_steps=None, **overr
     return PPOPeVFA("MlpPolicy", env, **authors_protocol(algorithm, **{**TINY, **overrides}), seed=0)
 
 
+def _gae_of_episodes(values: np.ndarray, episodes: int, gamma: float, gae_lambda: float) -> np.ndarray:
+    """GAE written out for ``episodes`` whole episodes of equal length, one after another, reward 1 a step: V = 0
+    after each episode's last step (no bootstrap at its end, truncated or not)."""
+    values = values.reshape(episodes, -1)
+    next_values = np.concatenate([values[:, 1:], np.zeros((episodes, 1))], axis=1)
+    deltas = 1.0 + gamma * next_values - values
+    advantages, gae = np.zeros_like(deltas), np.zeros(episodes)
+    for t in reversed(range(values.shape[1])):
+        gae = deltas[:, t] + gamma * gae_lambda * gae
+        advantages[:, t] = gae
+    return advantages.reshape(-1)
+
+
 def _rollout(model: PPOPeVFA) -> None:
     _, callback = model._setup_learn(10_000, reset_num_timesteps=False)
     model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
@@ -145,16 +158,7 @@ def test_monte_carlo_targets_and_gae_end_at_every_episode_end_and_at_the_cap():
     mc = np.array([(1 - gamma ** (25 - t)) / (1 - gamma) for t in range(25)] * 5, np.float32)
     np.testing.assert_allclose(buffer.returns[:, 0], mc, rtol=1e-5)
     model._recompute_advantages()  # the critic-first order's GAE, from the same critic
-    values = buffer.values[:, 0]
-    next_values = np.append(values[1:], 0.0).reshape(5, 25)
-    next_values[:, -1] = 0.0  # V = 0 after each episode's last step
-    deltas = 1.0 + gamma * next_values.reshape(-1) - values
-    expected = np.zeros(125, np.float32)
-    for episode in range(5):
-        gae = 0.0
-        for t in reversed(range(25)):
-            gae = deltas[episode * 25 + t] + gamma * 0.8 * gae
-            expected[episode * 25 + t] = gae
+    expected = _gae_of_episodes(buffer.values[:, 0], episodes=5, gamma=gamma, gae_lambda=0.8)
     np.testing.assert_allclose(buffer.advantages[:, 0], expected, rtol=1e-4, atol=1e-5)
 
 
@@ -551,10 +555,5 @@ def test_an_update_fits_the_critic_as_theirs_then_computes_gae_from_it():
         values = model.policy.predict_values(observations).flatten().numpy()
     assert np.abs(values - rollout_values).max() > 0.1  # the fit moved the critic
     np.testing.assert_allclose(buffer.values[:, 0], values, atol=1e-6)  # GAE read the fitted critic's values
-    next_values = np.append(values[1:], 0.0).reshape(5, 30)
-    next_values[:, -1] = 0.0
-    deltas = (1.0 + 0.99 * next_values.reshape(-1) - values).reshape(5, 30)
-    expected = np.zeros((5, 30), np.float32)
-    for t in reversed(range(30)):
-        expected[:, t] = deltas[:, t] + 0.99 * 0.95 * (expected[:, t + 1] if t < 29 else 0.0)
-    np.testing.assert_allclose(buffer.advantages[:, 0], expected.reshape(-1), rtol=1e-4, atol=1e-5)
+    expected = _gae_of_episodes(values, episodes=5, gamma=0.99, gae_lambda=0.95)
+    np.testing.assert_allclose(buffer.advantages[:, 0], expected, rtol=1e-4, atol=1e-5)
