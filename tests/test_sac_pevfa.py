@@ -108,9 +108,20 @@ def test_train_flushes_denormal_adam_moments_and_collecting_does_not(tmp_path, p
         pevfa_class("MlpPolicy", "Pendulum-v1", flush_denormal=1)
 
 
+#: The representations whose chi is computed from the live actor by a learned encoder (``random``: a fixed code)
+LEARNED = ("opr", "spr", "fingerprint")
+
+
+def deterministic(representation: str) -> dict:
+    """The representation's arguments with chi a function of the actor (SPR: all its pairs, no random subset)."""
+    return dict(representation=representation, representation_kwargs=dict(subsample=1.0) if representation == "spr" else None)
+
+
+@pytest.mark.parametrize("representation", LEARNED)
 @pytest.mark.parametrize("live_encoder_gradient", [True, False])
-def test_no_gradient_reaches_the_actor_through_its_embedding(live_encoder_gradient):
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", live_encoder_gradient=live_encoder_gradient, **tiny())
+def test_no_gradient_reaches_the_actor_through_its_embedding(live_encoder_gradient, representation):
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **deterministic(representation), live_encoder_gradient=live_encoder_gradient,
+                     **tiny())  # fmt: skip
     model.learn(150)
     observations = th.as_tensor(model.replay_buffer.observations[:16, 0])
     actions = th.as_tensor(model.replay_buffer.actions[:16, 0])
@@ -291,7 +302,7 @@ def test_a_snapshots_target_uses_that_snapshots_actions():
 
 def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation="random", snapshot_freq=20, history_max_policies=3,
-                     history_train_freq=4, history_batch_size=32, history_batch_policies=4, **tiny())  # fmt: skip
+                     history_train_freq=4, history_batch_size=32, history_batch_policies=2, **tiny())  # fmt: skip
     model.learn(260)  # 160 gradient steps: 1 + 8 snapshots, the latest 3 kept
     assert model.history.n_policies == 3 and model.history.policy_ids == [6, 7, 8]
     latest_code = model.history.records([8], fields=("codes",))["codes"][0]
@@ -458,8 +469,12 @@ def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_
     [
         (dict(representation="rpr"), r"valid choices: \('opr', 'spr', 'fingerprint', 'random', 'none'\)"),
         (dict(representation="spr", n_state_action_pairs=0), "spr' needs n_state_action_pairs > 0"),
-        (dict(representation="spr", n_state_action_pairs=16.0), r"n_state_action_pairs must be an int, got 16.0"),
+        (dict(representation="spr", n_state_action_pairs=16.0), r"n_state_action_pairs must be an int >= 0, got 16.0"),
+        (dict(n_state_action_pairs=-1), r"n_state_action_pairs must be an int >= 0, got -1"),
         (dict(embedding_dim=0), "embedding_dim must be a positive int, got 0"),
+        (dict(embedding_dim=True), "embedding_dim must be a positive int, got True"),
+        (dict(policy_kwargs=dict(critic_embedding_arch=64)), r"critic_embedding_arch must be a list of positive ints"),
+        (dict(policy_kwargs=dict(critic_head_arch=[64, 0])), r"critic_head_arch must be a list of positive ints"),
         (dict(snapshot_freq=0), "snapshot_freq must be an int >= 1"),
         (dict(snapshot_freq=10.0), r"snapshot_freq must be an int >= 1, got 10.0"),
         (dict(history_max_policies=0), "history_max_policies must be an int >= 1"),
@@ -471,6 +486,7 @@ def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_
         (dict(live_encoder_gradient=1), "live_encoder_gradient must be a bool, got 1"),
         (dict(flush_denormal="no"), "flush_denormal must be a bool, got 'no'"),
         (dict(history_batch_size=30, history_batch_policies=8), "must be a multiple of history_batch_policies"),
+        (dict(history_max_policies=4), r"history_batch_policies \(8\) must be at most history_max_policies \(4\)"),
         (dict(use_sde=True), "use_sde=True is not supported"),
         (dict(policy_kwargs=dict(representation="opr")), r"Pass \['representation'\] as arguments of the algorithm"),
     ],
@@ -481,6 +497,12 @@ def test_bad_arguments_are_refused_at_construction(pevfa_class, kwargs, message)
         message = r"TD3PeVFA\(\) got an unexpected keyword argument 'use_sde'"
     with pytest.raises(ValueError if pevfa_class is SACPeVFA or "use_sde" not in kwargs else TypeError, match=message):
         pevfa_class("MlpPolicy", "Pendulum-v1", **kwargs)
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_representation_kwargs_of_another_type_are_refused_with_a_type_error(pevfa_class):
+    with pytest.raises(TypeError, match=r"^representation_kwargs must be a dict, got list$"):
+        pevfa_class("MlpPolicy", "Pendulum-v1", representation_kwargs=[("layer_arch", (8,))])
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
@@ -629,10 +651,12 @@ def test_the_actors_deterministic_actions_at_its_features_are_sb3s(pevfa_class, 
 
 def test_numpy_ints_are_ints():
     """Counts from numpy or a search space (np.int64) are accepted as the ints they are."""
-    counts = dict(snapshot_freq=10, history_max_policies=5, history_train_freq=0, history_batch_size=64,
+    counts = dict(snapshot_freq=10, history_max_policies=10, history_train_freq=0, history_batch_size=64,
                   history_batch_policies=8, history_learning_starts=0)  # fmt: skip
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **{name: np.int64(value) for name, value in counts.items()})
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", embedding_dim=np.int64(8), n_state_action_pairs=np.int64(16),
+                     representation="spr", **{name: np.int64(value) for name, value in counts.items()})  # fmt: skip
     assert all(type(getattr(model, name)) is int and getattr(model, name) == value for name, value in counts.items())
+    assert type(model.policy.critic.representation.embedding_dim) is int and model.policy.critic.pair_states.shape[0] == 16
 
 
 @pytest.mark.parametrize(("pevfa_class", "base"), [(SACPeVFA, "SAC"), (TD3PeVFA, "TD3")])
@@ -789,6 +813,75 @@ def test_a_replay_buffer_whose_snapshots_do_not_load_leaves_the_model_as_it_was(
     with pytest.raises(ValueError, match=r"buffer\.snapshots\.npz"):
         other.load_replay_buffer(tmp_path / "buffer")
     assert "replay_buffer" not in vars(other) and other.history.policy_ids == ids
+
+
+@pytest.mark.parametrize("content", ["a buffer of another task", "not a replay buffer"])
+def test_a_replay_buffer_that_does_not_fit_is_refused_and_the_model_keeps_its_own(tmp_path, content):
+    """SB3 sets the loaded object as the model's buffer before it checks it, and takes a buffer of other shapes (its
+    first update then fails): both are refused, the model's buffer and snapshots kept."""
+    from stable_baselines3.common.save_util import save_to_pkl
+
+    if content == "not a replay buffer":
+        save_to_pkl(tmp_path / "buffer", {"observations": np.zeros(3)})
+        error, message = AssertionError, "The replay buffer must inherit from ReplayBuffer class"
+    else:
+        other_task = SACPeVFA("MlpPolicy", "MountainCarContinuous-v0", **tiny())
+        other_task.learn(10)
+        other_task.save_replay_buffer(tmp_path / "buffer")
+        error, message = ValueError, (r"buffer\.pkl holds observations of shape \(2,\) and actions of size 1; this "
+                                      r"model's are \(3,\) and 1")  # fmt: skip
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(105)
+    buffer, ids = model.replay_buffer, model.history.policy_ids
+    with pytest.raises(error, match=message):
+        model.load_replay_buffer(tmp_path / "buffer")
+    assert model.replay_buffer is buffer and model.history.policy_ids == ids
+
+
+def test_a_failed_save_of_the_replay_buffer_leaves_the_previous_buffer_and_snapshots(tmp_path, monkeypatch):
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=10, **tiny())
+    model.learn(120)
+    model.save_replay_buffer(tmp_path / "buffer")
+    files = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    assert sorted(files) == ["buffer.pkl", "buffer.snapshots.npz"]
+    model.learn(30, reset_num_timesteps=False)  # another buffer, more snapshots
+
+    def fails(path):
+        with open(path, "wb") as handle:  # a part written, then the disk is full
+            handle.write(b"part")
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(model.history, "save", fails)
+    with pytest.raises(OSError, match="No space left"):
+        model.save_replay_buffer(tmp_path / "buffer")  # the buffer written whole, the snapshots not
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == files  # no new buffer beside old snapshots
+    monkeypatch.undo()
+    model.save_replay_buffer(tmp_path / "buffer")
+    ids = model.history.policy_ids
+    model.load_replay_buffer(tmp_path / "buffer")  # the pair of this moment: a buffer of 150 steps, its snapshots
+    assert model.replay_buffer.size() == 150 and model.history.policy_ids == ids and len(ids) == 6
+
+
+def test_a_replay_buffer_saved_to_a_file_object_says_the_snapshots_stay_behind():
+    import io
+
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(105)
+    stream = io.BytesIO()
+    with pytest.warns(UserWarning, match=r"saves the snapshots beside a file path only: save them with save_history"):
+        model.save_replay_buffer(stream)
+    assert stream.getbuffer().nbytes > 0
+
+
+@pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])
+def test_a_snapshot_every_snapshot_freq_gradient_steps_when_a_train_call_spans_several(pevfa_class):
+    """With 50 gradient steps per call and a snapshot per 20, SB3's update runs in pieces ending where one is due."""
+    model = pevfa_class("MlpPolicy", "Pendulum-v1", snapshot_freq=20, train_freq=50, gradient_steps=50,
+                        history_train_freq=0, **tiny())  # fmt: skip
+    model.learn(300)  # train calls after steps 150, 200, 250, 300: 200 gradient steps
+    assert model._n_updates == 200
+    moments = [model.history.record_info(i)["n_updates"] for i in model.history.policy_ids]
+    assert moments == [20, 40, 60, 80, 100, 120, 140, 160, 180, 200]
 
 
 def test_a_checkpoint_resumes_with_the_replay_buffer_and_snapshots_of_its_moment(tmp_path):

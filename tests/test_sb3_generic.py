@@ -440,6 +440,37 @@ def test_load_takes_the_policy_kwargs_the_constructor_took(tmp_path, algorithm):
         assert cls.load(tmp_path / "other", policy_kwargs=dict(net_arch=[16, 16], chi_normalization="none"))
 
 
+@pytest.mark.parametrize("algorithm", ["ppo_pevfa", "sac_pevfa"])
+def test_a_failed_save_leaves_the_previous_model_file_as_it_was(tmp_path, monkeypatch, algorithm):
+    """SB3 writes the zip in place: a save that fails half way would leave a broken file where a good one was."""
+    import stable_baselines3.common.base_class as base_class
+
+    from sb3_pevfa import SACPeVFA
+
+    cls = {"ppo_pevfa": PPOPeVFA, "sac_pevfa": SACPeVFA}[algorithm]
+    model = cls("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[16]), seed=0)
+    model.save(tmp_path / "model")  # SB3 adds .zip
+    before = (tmp_path / "model.zip").read_bytes()
+    written = base_class.save_to_zip_file
+
+    def fails(path, **kwargs):
+        written(path, **kwargs)
+        with open(path, "r+b") as handle:  # the file cut short, then the error
+            handle.truncate(100)
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(base_class, "save_to_zip_file", fails)
+    with th.no_grad():
+        next(model.policy.parameters()).add_(1.0)
+    with pytest.raises(OSError, match="No space left"):
+        model.save(tmp_path / "model")
+    assert [path.name for path in tmp_path.iterdir()] == ["model.zip"] and (tmp_path / "model.zip").read_bytes() == before
+    monkeypatch.undo()
+    model.save(str(tmp_path / "model"))
+    assert (tmp_path / "model.zip").read_bytes() != before
+    th.testing.assert_close(cls.load(tmp_path / "model").policy.state_dict(), model.policy.state_dict())
+
+
 @pytest.mark.parametrize("algorithm", ["ppo_pevfa", "a2c_pevfa", "sac_pevfa", "td3_pevfa"])
 def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refuses(tmp_path, algorithm):
     """A clear error at load, before anything trains: a file of another algorithm (or SB3's own class) names the

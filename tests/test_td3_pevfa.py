@@ -1,15 +1,17 @@
 """TD3PeVFA: its snapshots' smoothed actions (bit for bit TD3 without a representation: tests/test_sac_pevfa.py)."""
 
 import numpy as np
+import pytest
 import torch as th
-from test_sac_pevfa import snapshot_then_move_on, tiny
+from test_sac_pevfa import LEARNED, deterministic, snapshot_then_move_on, tiny
 
 from sb3_pevfa.td3_pevfa import TD3PeVFA
 
 
-def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_gradient_through_chi():
-    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", history_train_freq=5, history_batch_size=32, history_batch_policies=4,
-                     **tiny())  # fmt: skip
+@pytest.mark.parametrize("representation", LEARNED)
+def test_a_snapshots_target_uses_its_own_smoothed_action_and_the_actor_gets_no_gradient_through_chi(representation):
+    model = TD3PeVFA("MlpPolicy", "Pendulum-v1", **deterministic(representation), history_train_freq=5,
+                     history_batch_size=32, history_batch_policies=4, **tiny())  # fmt: skip
     model.learn(200)
     snapshot, records, observations, features = snapshot_then_move_on(model)
     th.manual_seed(5)

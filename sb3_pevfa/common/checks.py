@@ -5,6 +5,8 @@ import inspect
 from collections.abc import Callable, Iterable
 from typing import Any
 
+import numpy as np
+
 
 def check_keyword_arguments(target: Callable[..., Any], kwargs: dict[str, Any], what: str, skip: int) -> None:
     """A ValueError naming the valid settings when ``kwargs`` holds one that ``target`` does not take.
@@ -53,3 +55,22 @@ def check_policy_class(model: Any, base: type) -> None:
             f"{base.__name__}), got {model.policy_class}"
             + (" (SB3's own policy; a file saved by SB3's algorithm loads with that algorithm's class)" if sb3 else "")
         )
+
+
+def is_int(value: Any) -> bool:
+    """An int or a numpy integer, not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def check_layer_sizes(name: str, value: Any) -> tuple[int, ...]:
+    """``value``, a list or tuple of positive ints (layer sizes), as a tuple; a ValueError naming ``name`` otherwise."""
+    if not isinstance(value, (list, tuple)) or not all(is_int(size) and size > 0 for size in value):
+        raise ValueError(f"{name} must be a list of positive ints (layer sizes), got {value!r}")
+    return tuple(int(size) for size in value)
+
+
+def check_dict(name: str, value: Any) -> dict[str, Any]:
+    """``value`` (a dict, or None for none) as a new dict; a TypeError naming ``name`` otherwise."""
+    if not isinstance(value, dict | None):
+        raise TypeError(f"{name} must be a dict, got {type(value).__name__}")
+    return dict(value or {})

@@ -14,6 +14,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.save_util import json_to_data
 
 from sb3_pevfa.common.checks import check_argument_names, init_parameters
+from sb3_pevfa.common.files import replacing, with_default_suffix
 
 #: The keyword arguments of SB3's ``load`` (``env``, ``device``, ``custom_objects``, ...)
 SB3_LOAD_PARAMETERS = set(inspect.signature(BaseAlgorithm.load).parameters) - {"cls", "path", "kwargs"}
@@ -41,10 +42,16 @@ class ModelFile:
     default_policy_kwargs: ClassVar[dict[str, Any]] = {}
 
     def save(self, path: str | pathlib.Path | io.BufferedIOBase, exclude=None, include=None) -> None:
+        """SB3's ``save``, with the RNG states; a file path is written whole or not at all (a failed save leaves an
+        existing file as it was)."""
         self._rng_states = {"torch": th.get_rng_state(), "numpy": np.random.get_state()}
         self._sb3_algorithm = sb3_algorithm(type(self))
         try:
-            super().save(path, exclude=exclude, include=include)  # type: ignore[misc]
+            if isinstance(path, (str, pathlib.Path)) and not with_default_suffix(path, "zip").is_dir():
+                with replacing(with_default_suffix(path, "zip")) as temporary:
+                    super().save(temporary, exclude=exclude, include=include)  # type: ignore[misc]
+            else:  # a file object, or a folder (SB3 saves beside it)
+                super().save(path, exclude=exclude, include=include)  # type: ignore[misc]
         finally:
             del self._rng_states, self._sb3_algorithm
 

@@ -16,6 +16,7 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_pevfa.common.files import replacing
 from sb3_pevfa.pevfa.normalization import reward_scale
 from sb3_pevfa.pevfa.records import RECORD_FIELDS, ActorLayout, rows, state_dim
 from sb3_pevfa.pevfa.targets import lambda_returns
@@ -646,14 +647,8 @@ class PolicyHistory:
         path = pathlib.Path(path)
         if not path.suffix:
             path = path.with_suffix(".npz")
-        os.makedirs(path.parent, exist_ok=True)
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            with open(temporary, "wb") as handle:  # a file handle: numpy adds no suffix
-                np.savez(handle, meta=np.array(json.dumps(meta)), **arrays)
-            os.replace(temporary, path)
-        finally:
-            temporary.unlink(missing_ok=True)
+        with replacing(path) as temporary, open(temporary, "wb") as handle:  # a file handle: numpy adds no suffix
+            np.savez(handle, meta=np.array(json.dumps(meta)), **arrays)
 
     def load(self, path: str | pathlib.Path | io.IOBase) -> "PolicyHistory":
         """Load a history saved by :meth:`save` (a path or a file-like object); the file must match this history's

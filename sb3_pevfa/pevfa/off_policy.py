@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.preprocessing import get_action_dim, get_obs_shape
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 from torch.nn import functional as F
 
 from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
+from sb3_pevfa.common.files import replacing, with_default_suffix
 from sb3_pevfa.common.model_file import ModelFile, sb3_algorithm
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
 from sb3_pevfa.pevfa.denormals import flush_denormals
@@ -60,6 +61,11 @@ def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
         value, least = arguments[name], 0 if name in ("history_train_freq", "history_learning_starts") else 1
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
             raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
+    if arguments["history_batch_policies"] > arguments["history_max_policies"]:
+        raise ValueError(
+            f"history_batch_policies ({arguments['history_batch_policies']}) must be at most history_max_policies "
+            f"({arguments['history_max_policies']}): an update draws that many distinct snapshots"
+        )
     if arguments["history_batch_size"] % arguments["history_batch_policies"]:
         raise ValueError(
             f"history_batch_size ({arguments['history_batch_size']}) must be a multiple of history_batch_policies "
@@ -251,10 +257,13 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
             self._train(gradient_steps, batch_size)
 
     def _train(self, gradient_steps: int, batch_size: int) -> None:
-        before = self._n_updates
-        super().train(gradient_steps, batch_size)  # type: ignore[safe-super]
-        if not self.history.n_policies or before // self.snapshot_freq < self._n_updates // self.snapshot_freq:
-            self.record_snapshot()
+        remaining = gradient_steps
+        while remaining > 0:  # SB3's update, in pieces that end where a snapshot is due
+            steps = min(remaining, self.snapshot_freq - self._n_updates % self.snapshot_freq)
+            super().train(steps, batch_size)  # type: ignore[safe-super]
+            remaining -= steps
+            if not self.history.n_policies or self._n_updates % self.snapshot_freq == 0:
+                self.record_snapshot()
         if self.history_train_freq == 0 or self.num_timesteps < self.history_learning_starts:
             return
         self._history_credit += gradient_steps
@@ -331,10 +340,20 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
 
     def save_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase) -> None:
         """SB3's, and the snapshots beside a file path (:func:`snapshots_path`): what rl-zoo3's
-        ``--save-replay-buffer`` and SB3's ``CheckpointCallback(save_replay_buffer=True)`` save then travels whole."""
-        super().save_replay_buffer(path)
-        if isinstance(path, (str, pathlib.Path)):
-            self.save_history(snapshots_path(path))
+        ``--save-replay-buffer`` and SB3's ``CheckpointCallback(save_replay_buffer=True)`` save then travels whole.
+        Both files are written before either replaces what was there: a failed save leaves the previous pair. A file
+        object gets the buffer alone (with a warning: :meth:`save_history` saves the snapshots)."""
+        if not isinstance(path, (str, pathlib.Path)):
+            warnings.warn(
+                f"{type(self).__name__}.save_replay_buffer saves the snapshots beside a file path only: save them with "
+                "save_history (a file object gets the replay buffer alone)",
+                stacklevel=2,
+            )
+            super().save_replay_buffer(path)
+            return
+        with replacing(with_default_suffix(path, "pkl")) as buffer, replacing(snapshots_path(path)) as snapshots:
+            super().save_replay_buffer(buffer)
+            self.save_history(snapshots)
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """SB3's, and the snapshots saved beside it by :meth:`save_replay_buffer`, where they are (rl-zoo3's ``-i``).
@@ -343,16 +362,31 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         with ``save_replay_buffer=True``) is loaded instead; snapshots from after it load with a warning."""
         path = path_of_the_moment(path, self.num_timesteps, "the replay buffer and snapshots", snapshots_path)
         had, previous = "replay_buffer" in vars(self), vars(self).get("replay_buffer")  # SB3's HER test deletes it first
-        super().load_replay_buffer(path, truncate_last_traj)
-        if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
-            try:
+        try:
+            super().load_replay_buffer(path, truncate_last_traj)  # SB3 sets the buffer before it checks it
+            self._check_replay_buffer(path)
+            if isinstance(path, (str, pathlib.Path)) and snapshots_path(path).exists():
                 self.load_history(snapshots_path(path))  # checked in full before it replaces anything
-            except BaseException:
-                if had:
-                    self.replay_buffer = previous
-                else:
-                    del self.replay_buffer
-                raise
+        except BaseException:
+            if had:
+                self.replay_buffer = previous
+            else:
+                vars(self).pop("replay_buffer", None)
+            raise
+
+    def _check_replay_buffer(self, path: Any) -> None:
+        """A ValueError where the loaded replay buffer holds observations or actions of other shapes than the
+        model's (SB3 takes it, and its first update fails)."""
+        buffer = self.replay_buffer
+        found = (getattr(buffer, "obs_shape", None), getattr(buffer, "action_dim", None))
+        expected = (get_obs_shape(self.observation_space), get_action_dim(self.action_space))
+        if found != expected:
+            if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
+                path = with_default_suffix(path, "pkl")  # the file SB3 read
+            raise ValueError(
+                f"The replay buffer in {path} holds observations of shape {found[0]} and actions of size {found[1]}; "
+                f"this model's are {expected[0]} and {expected[1]}"
+            )
 
     def load_history(self, path: str | pathlib.Path | io.IOBase) -> None:
         """Load snapshots saved by :meth:`save_history`; the live actor's code and states become the latest

@@ -17,6 +17,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
 from torch import nn
 
+from sb3_pevfa.common.checks import check_dict, check_layer_sizes, is_int
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, PeVFAValueHead
 from sb3_pevfa.pevfa.objectives import OBJECTIVES, make_objective
@@ -159,7 +160,7 @@ class PeVFAActorCriticPolicy(OnePassTrainingMode, ActorCriticPolicy):
             kwargs["optimizer_kwargs"] = {**(kwargs.get("optimizer_kwargs") or {}), "foreach": True}
         if net_arch is None and kwargs.get("features_extractor_class") is not NatureCNN:
             net_arch = dict(pi=[64, 64], vf=[64])
-        if not isinstance(n_state_action_pairs, (int, np.integer)) or n_state_action_pairs < 0:
+        if not is_int(n_state_action_pairs) or n_state_action_pairs < 0:
             raise ValueError(f"n_state_action_pairs must be an int >= 0, got {n_state_action_pairs!r}")
         if representation == "spr" and n_state_action_pairs == 0:
             raise ValueError("representation='spr' needs n_state_action_pairs > 0")
@@ -167,24 +168,22 @@ class PeVFAActorCriticPolicy(OnePassTrainingMode, ActorCriticPolicy):
             n_state_action_pairs = 0
         self.representation_name = representation
         self.embedding_dim = embedding_dim
-        if not isinstance(representation_kwargs, dict | None):
-            raise TypeError(f"representation_kwargs must be a dict, got {type(representation_kwargs).__name__}")
-        if not isinstance(objective_kwargs, dict | None):
-            raise TypeError(f"objective_kwargs must be a dict, got {type(objective_kwargs).__name__}")
+        representation_kwargs = check_dict("representation_kwargs", representation_kwargs)
+        objective_kwargs = check_dict("objective_kwargs", objective_kwargs)
         if isinstance(representation_objectives, str):  # "cl" means ("cl",), not ("c", "l")
             representation_objectives = (representation_objectives,)
         if "aux" in representation_objectives:
             _check_aux(observation_space, n_state_action_pairs)
-        self.representation_kwargs = dict(representation_kwargs or {})
+        self.representation_kwargs = representation_kwargs
         self.n_state_action_pairs = int(n_state_action_pairs)
-        self.critic_embedding_arch = list(critic_embedding_arch)
-        self.critic_head_arch = list(critic_head_arch)
+        self.critic_embedding_arch = list(check_layer_sizes("critic_embedding_arch", critic_embedding_arch))
+        self.critic_head_arch = list(check_layer_sizes("critic_head_arch", critic_head_arch))
         self.critic_combine = critic_combine
         self.critic_activation_fn = critic_activation_fn
         self.chi_normalization = chi_normalization
         self.representation_objectives = tuple(representation_objectives)
-        _check_objectives(self.representation_objectives, objective_kwargs or {})
-        self.objective_kwargs = {name: dict(value) for name, value in (objective_kwargs or {}).items()}
+        _check_objectives(self.representation_objectives, objective_kwargs)
+        self.objective_kwargs = {name: dict(value) for name, value in objective_kwargs.items()}
         #: False inside :meth:`critic_frozen`: values carry no gradient
         self.critic_trainable = True
         #: False: chi of the behaviour policy carries no gradient even while the critic trains (cached, so the value

@@ -15,7 +15,6 @@ TD3's ``q1_forward``), chi is computed without one. The flat copy is taken once 
 import inspect
 from typing import Any
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BaseModel
@@ -25,7 +24,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_pevfa.common.checks import check_argument_names, init_parameters
+from sb3_pevfa.common.checks import check_argument_names, check_dict, check_layer_sizes, init_parameters, is_int
 from sb3_pevfa.common.model_file import sb3_base
 from sb3_pevfa.common.training_mode import OnePassTrainingMode
 from sb3_pevfa.pevfa.critics import PeVFAValueHead
@@ -335,9 +334,9 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         check_argument_names(kwargs, valid, f"{type(self).__name__}() (policy_kwargs)")
         if kwargs.get("use_sde"):
             raise ValueError("A PeVFA records actors of linear layers: use_sde=True is not supported")
-        if isinstance(n_state_action_pairs, bool) or not isinstance(n_state_action_pairs, (int, np.integer)):
-            raise ValueError(f"n_state_action_pairs must be an int, got {n_state_action_pairs!r}")
-        if representation == "spr" and n_state_action_pairs <= 0:
+        if not is_int(n_state_action_pairs) or n_state_action_pairs < 0:
+            raise ValueError(f"n_state_action_pairs must be an int >= 0, got {n_state_action_pairs!r}")
+        if representation == "spr" and n_state_action_pairs == 0:
             raise ValueError("representation='spr' needs n_state_action_pairs > 0")
         self.representation_name = representation
         self.n_state_action_pairs = int(n_state_action_pairs)
@@ -345,10 +344,10 @@ class PeVFAQPolicyMixin(OnePassTrainingMode):
         self.pevfa_kwargs = dict(
             representation=representation,
             embedding_dim=embedding_dim,
-            representation_kwargs=dict(representation_kwargs or {}),
+            representation_kwargs=check_dict("representation_kwargs", representation_kwargs),
             n_state_action_pairs=int(n_state_action_pairs) if representation == "spr" else 0,
-            embedding_arch=tuple(critic_embedding_arch),
-            head_arch=None if critic_head_arch is None else tuple(critic_head_arch),
+            embedding_arch=check_layer_sizes("critic_embedding_arch", critic_embedding_arch),
+            head_arch=None if critic_head_arch is None else check_layer_sizes("critic_head_arch", critic_head_arch),
             critic_activation_fn=critic_activation_fn,
             chi_normalization=chi_normalization,
         )

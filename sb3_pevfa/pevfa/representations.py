@@ -9,7 +9,7 @@ from stable_baselines3.common.distributions import StateDependentNoiseDistributi
 from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
 
-from sb3_pevfa.common.checks import check_keyword_arguments
+from sb3_pevfa.common.checks import check_keyword_arguments, is_int
 from sb3_pevfa.pevfa.records import ActorLayout, PolicyRecord, encode_actions, encoded_action_dim, has_image, state_dim
 
 
@@ -336,8 +336,9 @@ def make_representation(
     """
     if name not in REPRESENTATIONS:
         raise ValueError(f"Unknown representation {name!r}, valid choices: {REPRESENTATIONS}")
-    if not isinstance(embedding_dim, int) or embedding_dim <= 0:
+    if not is_int(embedding_dim) or embedding_dim <= 0:
         raise ValueError(f"embedding_dim must be a positive int, got {embedding_dim!r}")
+    embedding_dim = int(embedding_dim)
     if name in ("rpr", "stats", "none", "random") and kwargs:
         raise ValueError(f"representation={name!r} takes no representation_kwargs, got {sorted(kwargs)}")
     if name == "opr":
