@@ -11,7 +11,7 @@ def main(argv: list[str] | None = None) -> None:
     exit_without_extra("zoo", "python -m sb3_pevfa.enjoy")
     from rl_zoo3.enjoy import enjoy as script
 
-    run_zoo_script(script, argv, default_config=False)
+    run_zoo_script(script, argv, default_config=False, watch=True)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@ HYPERPARAMS_PATHS = {
     name: pathlib.Path(__file__).resolve().parent.parent / "hyperparams" / f"{name}.yml" for name in ALGORITHMS
 }
 HYPERPARAMS_PATH = HYPERPARAMS_PATHS[ALGO_NAME]
+#: The off-policy ones (a replay buffer)
+OFF_POLICY_ALGORITHMS = ("sac_pevfa", "td3_pevfa")
 #: rl-zoo3's entries that the shipped hyperparameters leave out, because the algorithm refuses them: why
 LEFT_OUT = {
     "sac_pevfa": dict.fromkeys(
@@ -65,13 +67,32 @@ def register() -> None:
         hyperparams_opt.HYPERPARAMS_CONVERTER[name] = CONVERTERS[name]
 
 
-def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, default_config: bool = False) -> None:
+class LoadsWithoutReplayBuffer:
+    """An algorithm class whose ``load`` builds a replay buffer of one transition (what rl-zoo3's ``enjoy`` and
+    ``record_video`` pass to the off-policy algorithms they list, which the PeVFA ones are not among)."""
+
+    def __init__(self, algorithm: type):
+        self.algorithm = algorithm
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.algorithm, name)
+
+    def load(self, *args: object, **kwargs: object) -> object:
+        kwargs.setdefault("buffer_size", 1)
+        return self.algorithm.load(*args, **kwargs)
+
+
+def run_zoo_script(
+    script: Callable[[], None], argv: list[str] | None = None, default_config: bool = False, watch: bool = False
+) -> None:
     """Run an rl-zoo3 command-line function with ``ppo_pevfa`` registered and rl-zoo3's flags unchanged.
 
     :param default_config: Training: add ``--conf-file`` pointing at the shipped hyperparameters when a PeVFA algorithm
         (``--algo ppo_pevfa``, ``a2c_pevfa``, ``sac_pevfa``, ``td3_pevfa``) is trained without one (a user's
         ``--conf-file`` or ``-conf``, in any form rl-zoo3's parser reads, wins), and read the package's
         ``--search-space`` flag (``--search-space small`` or ``--search-space=small``)
+    :param watch: ``enjoy`` and ``record_video``: the off-policy PeVFA algorithms load with a replay buffer of one
+        transition, as rl-zoo3 loads SAC and TD3 there (not the saved ``buffer_size``'s memory)
     """
     from sb3_pevfa.rl_zoo.hyperparams_opt import SEARCH_SPACE
 
@@ -101,4 +122,11 @@ def run_zoo_script(script: Callable[[], None], argv: list[str] | None = None, de
                                  "own with --conf-file.")  # fmt: skip
             args += ["--conf-file", str(HYPERPARAMS_PATHS[given.algo])]
     sys.argv = [sys.argv[0], *args]
-    script()
+    from rl_zoo3 import utils
+
+    watched = {name: utils.ALGOS[name] for name in OFF_POLICY_ALGORITHMS} if watch else {}
+    utils.ALGOS.update({name: LoadsWithoutReplayBuffer(algorithm) for name, algorithm in watched.items()})
+    try:
+        script()
+    finally:
+        utils.ALGOS.update(watched)
