@@ -104,3 +104,20 @@ def test_without_its_extra_a_command_says_which_to_install(tmp_path, command, ex
         assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
     else:
         assert "ModuleNotFoundError: sb3_pevfa.diagnostics needs" in result.stderr
+
+
+def test_embedding_maps_of_sacpevfas_snapshots_from_a_saved_model(tmp_path):
+    """--algo picks the class of the saved model and its history (the snapshots, save_history's file)."""
+    from sb3_pevfa import SACPeVFA
+
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", learning_starts=100, snapshot_freq=50, batch_size=32,
+                     policy_kwargs=dict(net_arch=[16]), seed=0)  # fmt: skip
+    model.learn(400)  # 300 gradient steps: 1 + 6 snapshots
+    model.save(tmp_path / "model")
+    model.save_history(tmp_path / "snapshots")
+    files = ["--model", str(tmp_path / "model.zip"), "--history", str(tmp_path / "snapshots.npz")]
+    command = [sys.executable, str(ROOT / "examples" / "embedding_maps.py"), "--algo", "sac_pevfa", *files,
+               "--out", str(tmp_path / "out")]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, env={**os.environ, "MPLBACKEND": "Agg"})
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    assert "7 policies mapped" in result.stdout and (tmp_path / "out" / "embedding_maps.png").exists()
