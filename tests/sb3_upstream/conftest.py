@@ -95,9 +95,7 @@ def _chain(error: BaseException | None) -> list[BaseException]:
 SLOW: list[tuple[str, str]] = [
     (
         r"test_save_load\.py::test_save_load_large_model$",
-        "25-30 s and ~2.5 GB (a TD3 of three 8192-unit layers, over 2 GB saved); it also fails for a design reason: "
-        "TD3.load(..., policy_kwargs=dict(net_arch=...)) differs from the stored policy_kwargs, which hold the PeVFA "
-        "arguments (representation, embedding_dim, ...)",
+        "25-30 s and ~2.5 GB (a TD3 of three 8192-unit layers, over 2 GB saved)",
     ),
 ]
 
