@@ -37,7 +37,8 @@ def main() -> None:
     if args.model is not None:
         if args.history is None:
             parser.error("--model needs --history (the embeddings are of the policies recorded in it)")
-        model = ALGORITHMS[args.algo].load(args.model)
+        watch = dict(buffer_size=1) if args.algo in OFF_POLICY_ALGORITHMS else {}  # the map reads no replay buffer
+        model = ALGORITHMS[args.algo].load(args.model, **watch)
         model.load_history(args.history)
     else:
         tiny = dict(learning_starts=100, snapshot_freq=100) if args.algo in OFF_POLICY_ALGORITHMS else dict(n_steps=64)

@@ -302,7 +302,7 @@ def test_a_snapshots_target_uses_that_snapshots_actions():
 
 def test_snapshots_are_bounded_saved_and_loaded(tmp_path):
     model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation="random", snapshot_freq=20, history_max_policies=3,
-                     history_train_freq=4, history_batch_size=32, history_batch_policies=2, **tiny())  # fmt: skip
+                     history_train_freq=4, history_batch_size=32, history_batch_policies=4, **tiny())  # fmt: skip
     model.learn(260)  # 160 gradient steps: 1 + 8 snapshots, the latest 3 kept
     assert model.history.n_policies == 3 and model.history.policy_ids == [6, 7, 8]
     latest_code = model.history.records([8], fields=("codes",))["codes"][0]
@@ -486,7 +486,6 @@ def test_by_default_one_update_of_512_transitions_of_8_snapshots_per_4_gradient_
         (dict(live_encoder_gradient=1), "live_encoder_gradient must be a bool, got 1"),
         (dict(flush_denormal="no"), "flush_denormal must be a bool, got 'no'"),
         (dict(history_batch_size=30, history_batch_policies=8), "must be a multiple of history_batch_policies"),
-        (dict(history_max_policies=4), r"history_batch_policies \(8\) must be at most history_max_policies \(4\)"),
         (dict(use_sde=True), "use_sde=True is not supported"),
         (dict(policy_kwargs=dict(representation="opr")), r"Pass \['representation'\] as arguments of the algorithm"),
     ],
@@ -862,6 +861,16 @@ def test_a_failed_save_of_the_replay_buffer_leaves_the_previous_buffer_and_snaps
     assert model.replay_buffer.size() == 150 and model.history.policy_ids == ids and len(ids) == 6
 
 
+def test_a_replay_buffer_is_not_saved_into_a_folder(tmp_path):
+    """SB3 would save it beside the folder (``buffer.pkl_2``), away from its snapshots."""
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", **tiny())
+    model.learn(105)
+    (tmp_path / "buffer.pkl").mkdir()
+    with pytest.raises(ValueError, match=r"buffer\.pkl is a folder: save_replay_buffer takes a file path"):
+        model.save_replay_buffer(tmp_path / "buffer")
+    assert [path.name for path in tmp_path.iterdir()] == ["buffer.pkl"] and not any((tmp_path / "buffer.pkl").iterdir())
+
+
 def test_a_replay_buffer_saved_to_a_file_object_says_the_snapshots_stay_behind():
     import io
 
@@ -871,6 +880,33 @@ def test_a_replay_buffer_saved_to_a_file_object_says_the_snapshots_stay_behind()
     with pytest.warns(UserWarning, match=r"saves the snapshots beside a file path only: save them with save_history"):
         model.save_replay_buffer(stream)
     assert stream.getbuffer().nbytes > 0
+
+
+def test_the_losses_of_a_train_call_in_pieces_are_logged_as_the_whole_calls_means(monkeypatch):
+    """SB3 logs the mean of each loss over a train call's gradient steps: a call run in pieces (snapshots at 20, 40)
+    logs their means weighted by the pieces' gradient steps, its counts as SB3 leaves them."""
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", snapshot_freq=20, history_train_freq=0, **tiny())
+    model.learn(105)  # 5 gradient steps
+    pieces = []
+
+    def sb3_train(self, gradient_steps, batch_size=64):  # SB3's logging of a piece: its losses' means and counts
+        pieces.append(gradient_steps)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/learning_rate", 0.25)
+        self.logger.record("train/critic_loss", float(len(pieces)))  # 1.0, 2.0, 3.0
+        if len(pieces) != 2:
+            self.logger.record("train/actor_loss", 10.0 * len(pieces))  # none in the second piece (TD3's delay)
+
+    monkeypatch.setattr(SAC, "train", sb3_train)
+    model.train(50, 32)  # from 5 updates: pieces of 15, 20 and 15 gradient steps
+    assert pieces == [15, 20, 15] and model._n_updates == 55
+    logged = model.logger.name_to_value
+    assert logged["train/critic_loss"] == pytest.approx((15 * 1 + 20 * 2 + 15 * 3) / 50)
+    assert logged["train/actor_loss"] == pytest.approx((15 * 10 + 15 * 30) / 30)
+    assert logged["train/n_updates"] == 55 and logged["train/learning_rate"] == 0.25
+    model.train(1, 32)  # one piece: SB3's values as they are
+    assert logged["train/critic_loss"] == 4.0 and logged["train/actor_loss"] == 40.0
 
 
 @pytest.mark.parametrize("pevfa_class", [SACPeVFA, TD3PeVFA])

@@ -471,6 +471,24 @@ def test_a_failed_save_leaves_the_previous_model_file_as_it_was(tmp_path, monkey
     th.testing.assert_close(cls.load(tmp_path / "model").policy.state_dict(), model.policy.state_dict())
 
 
+def test_a_model_saved_again_keeps_its_files_permissions_and_link(tmp_path):
+    """Written beside and renamed over it, as SB3's write in place would leave them: the link's target is replaced."""
+    import os
+    import stat
+
+    model = PPOPeVFA("MlpPolicy", "CartPole-v1", policy_kwargs=dict(net_arch=[8]))
+    (tmp_path / "runs").mkdir()
+    model.save(tmp_path / "runs" / "model.zip")
+    os.chmod(tmp_path / "runs" / "model.zip", 0o640)
+    (tmp_path / "latest.zip").symlink_to(tmp_path / "runs" / "model.zip")
+    with th.no_grad():
+        next(model.policy.parameters()).add_(1.0)
+    model.save(tmp_path / "latest")  # SB3 adds .zip: the link
+    assert (tmp_path / "latest.zip").is_symlink() and sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["model.zip"]
+    assert stat.S_IMODE(os.stat(tmp_path / "runs" / "model.zip").st_mode) == 0o640
+    th.testing.assert_close(PPOPeVFA.load(tmp_path / "runs" / "model.zip").policy.state_dict(), model.policy.state_dict())
+
+
 @pytest.mark.parametrize("algorithm", ["ppo_pevfa", "a2c_pevfa", "sac_pevfa", "td3_pevfa"])
 def test_load_refuses_another_algorithms_file_and_settings_the_constructor_refuses(tmp_path, algorithm):
     """A clear error at load, before anything trains: a file of another algorithm (or SB3's own class) names the

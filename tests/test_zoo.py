@@ -303,25 +303,39 @@ def test_zoo_checkpoints_keep_the_history_of_their_moment(zoo_run):
     np.testing.assert_array_equal(model.history.samples()[0][:256], saved.samples()[0])
 
 
-def test_enjoy_loads_the_off_policy_algorithms_with_a_replay_buffer_of_one_transition(tmp_path, monkeypatch):
+@pytest.mark.parametrize("command", ["enjoy", "record_video"])
+def test_enjoy_and_record_video_load_the_off_policy_algorithms_with_one_transitions_buffer(tmp_path, monkeypatch, command):
     """rl-zoo3's enjoy and record_video pass buffer_size=1 to the off-policy algorithms they list (SAC, TD3, ...), not
-    to ours: the watching run loads them so too, and rl-zoo3's table is as it was afterwards."""
-    from rl_zoo3 import utils
+    to ours: the package's commands load them so too (rl-zoo3's call, its arguments), and leave rl-zoo3's table as
+    it was."""
+    import runpy
 
+    import rl_zoo3.enjoy
+    from rl_zoo3 import ALGOS
+
+    import sb3_pevfa.enjoy
+    import sb3_pevfa.record_video
     from sb3_pevfa import SACPeVFA
-    from sb3_pevfa.rl_zoo import run_zoo_script
 
     SACPeVFA("MlpPolicy", "Pendulum-v1", buffer_size=5000, policy_kwargs=dict(net_arch=[8])).save(tmp_path / "sac")
     PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])).save(tmp_path / "ppo")
-    monkeypatch.setattr(sys, "argv", ["enjoy"])
     loaded = []
-    run_zoo_script(lambda: loaded.extend(utils.ALGOS[name].load(tmp_path / name.partition("_")[0])
-                                         for name in ("sac_pevfa", "ppo_pevfa")), [], watch=True)  # fmt: skip
+
+    def zoo_script(*_: object, **__: object) -> None:  # rl-zoo3's load: its custom objects, device and seed
+        for name in ("sac_pevfa", "ppo_pevfa"):
+            kwargs = dict(seed=0, **(dict(buffer_size=1) if name in ("sac", "td3") else {}))  # rl-zoo3's own list
+            model = ALGOS[name].load(tmp_path / name.partition("_")[0], custom_objects={"learning_rate": 0.0},
+                                     device="cpu", **kwargs)  # fmt: skip
+            loaded.append(model)
+
+    monkeypatch.setattr(rl_zoo3.enjoy, "enjoy", zoo_script)
+    monkeypatch.setattr(runpy, "run_module", zoo_script)
+    monkeypatch.setattr(sys, "argv", [command])
+    {"enjoy": sb3_pevfa.enjoy, "record_video": sb3_pevfa.record_video}[command].main(["--algo", "sac_pevfa"])
     assert loaded[0].buffer_size == 1 and loaded[0].replay_buffer.buffer_size == 1 and type(loaded[0]) is SACPeVFA
     assert type(loaded[1]) is PPOPeVFA
-    assert utils.ALGOS["sac_pevfa"] is SACPeVFA and utils.ALGOS["td3_pevfa"].__name__ == "TD3PeVFA"  # restored
-    run_zoo_script(lambda: loaded.append(utils.ALGOS["sac_pevfa"].load(tmp_path / "sac")), [])  # training: as saved
-    assert loaded[2].buffer_size == 5000
+    assert ALGOS["sac_pevfa"] is SACPeVFA and ALGOS["td3_pevfa"].__name__ == "TD3PeVFA"  # restored
+    assert ALGOS["sac_pevfa"].load(tmp_path / "sac").buffer_size == 5000  # elsewhere (training's -i): as saved
 
 
 @pytest.mark.parametrize(

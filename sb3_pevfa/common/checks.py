@@ -2,7 +2,7 @@
 
 import difflib
 import inspect
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -63,14 +63,16 @@ def is_int(value: Any) -> bool:
 
 
 def check_layer_sizes(name: str, value: Any) -> tuple[int, ...]:
-    """``value``, a list or tuple of positive ints (layer sizes), as a tuple; a ValueError naming ``name`` otherwise."""
-    if not isinstance(value, (list, tuple)) or not all(is_int(size) and size > 0 for size in value):
+    """``value``, a sequence of positive ints (layer sizes: a list, tuple or array), as a tuple; a ValueError naming
+    ``name`` otherwise."""
+    sizes = tuple(value) if isinstance(value, Iterable) and not isinstance(value, (str, bytes)) else None
+    if sizes is None or not all(is_int(size) and size > 0 for size in sizes):
         raise ValueError(f"{name} must be a list of positive ints (layer sizes), got {value!r}")
-    return tuple(int(size) for size in value)
+    return tuple(int(size) for size in sizes)
 
 
 def check_dict(name: str, value: Any) -> dict[str, Any]:
-    """``value`` (a dict, or None for none) as a new dict; a TypeError naming ``name`` otherwise."""
-    if not isinstance(value, dict | None):
+    """``value`` (a mapping, or None for none) as a new dict; a TypeError naming ``name`` otherwise."""
+    if not isinstance(value, Mapping | None):
         raise TypeError(f"{name} must be a dict, got {type(value).__name__}")
     return dict(value or {})

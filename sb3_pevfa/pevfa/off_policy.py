@@ -2,8 +2,8 @@
 extra critic updates for them.
 
 ``class SACPeVFA(OffPolicyPeVFA, SAC)``: SB3's ``train`` runs as it is, its critics reading chi of the live actor
-(:class:`~sb3_pevfa.pevfa.q_critics.PeVFAContinuousCritic`); after it, the live actor is recorded every
-``snapshot_freq`` gradient steps, and every ``history_train_freq`` gradient steps one critic update fits
+(:class:`~sb3_pevfa.pevfa.q_critics.PeVFAContinuousCritic`), in pieces that end where the live actor is recorded
+(every ``snapshot_freq`` gradient steps); after it, every ``history_train_freq`` gradient steps one critic update fits
 Q(s, a, chi_k) of ``history_batch_policies`` snapshots k to their own targets on replay transitions:
 r + gamma (1 - d) (min Q'(s', a'_k, chi'_k) [- alpha log pi_k(a'_k | s')]), a'_k drawn from snapshot k's actor
 (:meth:`OffPolicyPeVFA._snapshot_actions`).
@@ -61,11 +61,6 @@ def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
         value, least = arguments[name], 0 if name in ("history_train_freq", "history_learning_starts") else 1
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
             raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
-    if arguments["history_batch_policies"] > arguments["history_max_policies"]:
-        raise ValueError(
-            f"history_batch_policies ({arguments['history_batch_policies']}) must be at most history_max_policies "
-            f"({arguments['history_max_policies']}): an update draws that many distinct snapshots"
-        )
     if arguments["history_batch_size"] % arguments["history_batch_policies"]:
         raise ValueError(
             f"history_batch_size ({arguments['history_batch_size']}) must be a multiple of history_batch_policies "
@@ -251,19 +246,25 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         return policy_id
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SB3's update, then the snapshots and the historical critic updates of its ``gradient_steps``, float32
-        denormals flushed to zero unless ``flush_denormal`` is False (:mod:`~sb3_pevfa.pevfa.denormals`)."""
+        """SB3's update with a snapshot every ``snapshot_freq`` of its ``gradient_steps``, then the snapshots' critic
+        updates of those steps, float32 denormals flushed to zero unless ``flush_denormal`` is False
+        (:mod:`~sb3_pevfa.pevfa.denormals`)."""
         with flush_denormals(self.flush_denormal):
             self._train(gradient_steps, batch_size)
 
     def _train(self, gradient_steps: int, batch_size: int) -> None:
-        remaining = gradient_steps
+        remaining, pieces = gradient_steps, []
         while remaining > 0:  # SB3's update, in pieces that end where a snapshot is due
             steps = min(remaining, self.snapshot_freq - self._n_updates % self.snapshot_freq)
             super().train(steps, batch_size)  # type: ignore[safe-super]
             remaining -= steps
+            pieces.append((steps, self._popped_means()))
             if not self.history.n_policies or self._n_updates % self.snapshot_freq == 0:
                 self.record_snapshot()
+        for key in dict.fromkeys(key for _, means in pieces for key in means):  # SB3's means over the whole call
+            logged = [(steps, means[key]) for steps, means in pieces if key in means]
+            total = sum(steps for steps, _ in logged)
+            self.logger.record(key, logged[0][1] if len(logged) == 1 else sum(n * v for n, v in logged) / total)
         if self.history_train_freq == 0 or self.num_timesteps < self.history_learning_starts:
             return
         self._history_credit += gradient_steps
@@ -276,6 +277,13 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         self._n_history_updates += len(losses)
         self.logger.record("pevfa/n_history_updates", self._n_history_updates)  # so far, as SB3's train/n_updates
         self.logger.record("pevfa/n_policies", self.history.n_policies)
+
+    def _popped_means(self) -> dict[str, float]:
+        """The means SB3's update just logged (``train/critic_loss``, ...; not its counts and learning rate), taken
+        from the logger to be recorded once for the whole ``train`` call, weighted by each piece's gradient steps."""
+        values = self.logger.name_to_value
+        keys = [key for key in values if key.startswith("train/") and key not in ("train/n_updates", "train/learning_rate")]
+        return {key: values.pop(key) for key in keys}
 
     def _snapshot_actions(self, records: PolicyRecord, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
         """Actions of ``P`` snapshots at their own inputs ``(P, K, features)``: ``(P * K, action_dim)`` and their
@@ -343,6 +351,8 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         ``--save-replay-buffer`` and SB3's ``CheckpointCallback(save_replay_buffer=True)`` save then travels whole.
         Both files are written before either replaces what was there: a failed save leaves the previous pair. A file
         object gets the buffer alone (with a warning: :meth:`save_history` saves the snapshots)."""
+        if isinstance(path, (str, pathlib.Path)) and with_default_suffix(path, "pkl").is_dir():
+            raise ValueError(f"{with_default_suffix(path, 'pkl')} is a folder: save_replay_buffer takes a file path")
         if not isinstance(path, (str, pathlib.Path)):
             warnings.warn(
                 f"{type(self).__name__}.save_replay_buffer saves the snapshots beside a file path only: save them with "
@@ -382,7 +392,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         expected = (get_obs_shape(self.observation_space), get_action_dim(self.action_space))
         if found != expected:
             if isinstance(path, (str, pathlib.Path)) and not pathlib.Path(path).exists():
-                path = with_default_suffix(path, "pkl")  # the file SB3 read
+                path = f"{path}.pkl"  # the file SB3 read
             raise ValueError(
                 f"The replay buffer in {path} holds observations of shape {found[0]} and actions of size {found[1]}; "
                 f"this model's are {expected[0]} and {expected[1]}"
