@@ -350,15 +350,16 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
         """SB3's, and the snapshots beside a file path (:func:`snapshots_path`): what rl-zoo3's
         ``--save-replay-buffer`` and SB3's ``CheckpointCallback(save_replay_buffer=True)`` save then travels whole.
         Both files are written before either replaces what was there: a failed save leaves the previous pair. A file
-        object gets the buffer alone (with a warning: :meth:`save_history` saves the snapshots)."""
+        object gets the buffer alone (with a warning where there are snapshots: :meth:`save_history` saves them)."""
         if isinstance(path, (str, pathlib.Path)) and with_default_suffix(path, "pkl").is_dir():
             raise ValueError(f"{with_default_suffix(path, 'pkl')} is a folder: save_replay_buffer takes a file path")
         if not isinstance(path, (str, pathlib.Path)):
-            warnings.warn(
-                f"{type(self).__name__}.save_replay_buffer saves the snapshots beside a file path only: save them with "
-                "save_history (a file object gets the replay buffer alone)",
-                stacklevel=2,
-            )
+            if self.history.n_policies:  # snapshots to lose
+                warnings.warn(
+                    f"{type(self).__name__}.save_replay_buffer saves the snapshots beside a file path only: save them with "
+                    "save_history (a file object gets the replay buffer alone)",
+                    stacklevel=2,
+                )
             super().save_replay_buffer(path)
             return
         with replacing(with_default_suffix(path, "pkl")) as buffer, replacing(snapshots_path(path)) as snapshots:
