@@ -816,8 +816,8 @@ def test_a_replay_buffer_whose_snapshots_do_not_load_leaves_the_model_as_it_was(
 
 @pytest.mark.parametrize("content", ["a buffer of another task", "not a replay buffer"])
 def test_a_replay_buffer_that_does_not_fit_is_refused_and_the_model_keeps_its_own(tmp_path, content):
-    """SB3 sets the loaded object as the model's buffer before it checks it, and takes a buffer of other shapes (its
-    first update then fails): both are refused, the model's buffer and snapshots kept."""
+    """SB3 sets the loaded object as the model's buffer before it checks it, and takes a buffer of other shapes (the
+    first transition stored then fails): both are refused, the model's buffer and snapshots kept."""
     from stable_baselines3.common.save_util import save_to_pkl
 
     if content == "not a replay buffer":

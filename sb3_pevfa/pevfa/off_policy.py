@@ -387,7 +387,7 @@ class OffPolicyPeVFA(ModelFile, OffPolicyAlgorithm):
 
     def _check_replay_buffer(self, path: Any) -> None:
         """A ValueError where the loaded replay buffer holds observations or actions of other shapes than the
-        model's (SB3 takes it, and its first update fails)."""
+        model's (SB3 takes it, and the first transition stored fails)."""
         buffer = self.replay_buffer
         found = (getattr(buffer, "obs_shape", None), getattr(buffer, "action_dim", None))
         expected = (get_obs_shape(self.observation_space), get_action_dim(self.action_space))
