@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
+from sb3_pevfa.common.checks import is_int
 from sb3_pevfa.pevfa.critics import CRITIC_DEFAULTS, EARLIER_CRITIC
 from sb3_pevfa.pevfa.representations import REPRESENTATIONS
 
@@ -118,13 +119,13 @@ def validate_arguments(arguments: dict[str, Any]) -> None:
         name: arguments[name] for name in ("history_train_freq", "history_learning_starts", "n_state_action_pairs")
     }
     for name, value in positive.items():
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+        if not is_int(value) or value <= 0:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
     for name, value in non_negative.items():
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+        if not is_int(value) or value < 0:
             raise ValueError(f"{name} must be an int >= 0, got {value!r}")
     k = arguments["history_batch_policies"]
-    if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k <= 0):
+    if k is not None and (not is_int(k) or k <= 0):
         raise ValueError(f"history_batch_policies must be None (uniform samples, the paper's) or a positive int, got {k!r}")
     _check_rollout_options(arguments)
     for name in ("fast_path", "flush_denormal", "bootstrap_truncated", "train_on_clipped_actions"):

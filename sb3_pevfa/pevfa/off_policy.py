@@ -22,7 +22,7 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 from torch.nn import functional as F
 
-from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters
+from sb3_pevfa.common.checks import check_argument_names, check_policy_class, init_parameters, is_int
 from sb3_pevfa.common.files import replacing, with_default_suffix
 from sb3_pevfa.common.model_file import ModelFile, sb3_algorithm
 from sb3_pevfa.pevfa.checkpoints import path_of_the_moment, warn_if_newer
@@ -59,7 +59,7 @@ def check_snapshot_arguments(arguments: dict[str, Any]) -> None:
     """A ValueError naming the argument where one is not a valid int."""
     for name in SNAPSHOT_ARGUMENTS:
         value, least = arguments[name], 0 if name in ("history_train_freq", "history_learning_starts") else 1
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
+        if not is_int(value) or value < least:
             raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
     if arguments["history_batch_size"] % arguments["history_batch_policies"]:
         raise ValueError(
