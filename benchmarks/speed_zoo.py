@@ -7,19 +7,28 @@ repeat) for ``--steps`` env steps, SB3's first, and times its ``learn`` in CPU s
 (``time.process_time``) and wall-clock seconds, one torch thread. The ratio is PeVFA's steps per CPU-second over
 SB3's in the same repeat; its median and range over the repeats are reported.
 
+SACPeVFA's and TD3PeVFA's snapshots' updates draw ``history_batch_policies`` snapshots (8) once as many exist, fewer
+before: with a snapshot per 1000 gradient steps a short run pays a cheaper update than a long one. Each of their runs
+records the snapshots its updates drew on average (``snapshots_per_update``) and says where it is short of the long
+run's; ``--options '{"snapshot_freq": 100}'`` gives a short run a long run's updates (8 snapshots from its 800th
+gradient step on).
+
     # rl-zoo3's shipped A2C settings on CartPole-v1 (8 envs, 5-step rollouts): A2C vs A2CPeVFA's shipped entry
     python benchmarks/speed_zoo.py --setting a2c-cartpole --steps 100000 --repeats 5
     # rl-zoo3's tuned Hopper-v5 PPO (256x256, n_steps 512, VecNormalize): PPO vs PPOPeVFA's shipped entry
     python benchmarks/speed_zoo.py --setting ppo-hopper-tuned --steps 60000 --repeats 5
     # rl-zoo3's Hopper SAC entry (SB3's SAC defaults): SAC vs SACPeVFA's shipped entry, 1000 random steps first (the
-    # entry's 10000 would be most of a short run) for both
-    python benchmarks/speed_zoo.py --setting sac-hopper --steps 10000 --repeats 3 --overrides '{"learning_starts": 1000}'
+    # entry's 10000 would be most of a short run) for both, a long run's 8 snapshots per update for SACPeVFA
+    python benchmarks/speed_zoo.py --setting sac-hopper --steps 6000 --repeats 3 --overrides '{"learning_starts": 1000}' \
+        --options '{"snapshot_freq": 100}'
     # rl-zoo3's Hopper TD3 entry (400x300, Gaussian action noise 0.1): TD3 vs TD3PeVFA's shipped entry, the same way
-    python benchmarks/speed_zoo.py --setting td3-hopper --steps 10000 --repeats 3 --overrides '{"learning_starts": 1000}'
+    python benchmarks/speed_zoo.py --setting td3-hopper --steps 6000 --repeats 3 --overrides '{"learning_starts": 1000}' \
+        --options '{"snapshot_freq": 100}'
 """
 
 import argparse
 import json
+import math
 import pathlib
 import time
 from typing import Any
@@ -36,6 +45,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
 from sb3_pevfa import A2CPeVFA, PPOPeVFA, SACPeVFA, TD3PeVFA
+from sb3_pevfa.pevfa.off_policy import OffPolicyPeVFA
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 ZOO = pathlib.Path(rl_zoo3.__file__).parent / "hyperparams"
@@ -84,6 +94,7 @@ def timed_run(algorithm: type, entry: dict[str, Any], env_id: str, seed: int, st
     """One run's CPU and wall-clock seconds of ``learn``, and then (untimed) the mean return of ``episodes``
     deterministic episodes of the trained policy on an env seeded with ``seed + 10000``."""
     model = make_model(algorithm, entry, env_id, seed)
+    drawn = snapshots_drawn(model)
     cpu, wall = time.process_time(), time.perf_counter()
     model.learn(steps)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
@@ -91,8 +102,29 @@ def timed_run(algorithm: type, entry: dict[str, Any], env_id: str, seed: int, st
     if isinstance(env, VecNormalize):
         env.training = False  # evaluate in the run's statistics, without moving them
     returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
-    return {"steps": model.num_timesteps, "cpu_s": cpu, "wall_s": wall, "steps_per_cpu_s": model.num_timesteps / cpu,
-            "final_return": float(np.mean(returns))}  # fmt: skip
+    run = {"steps": model.num_timesteps, "cpu_s": cpu, "wall_s": wall, "steps_per_cpu_s": model.num_timesteps / cpu,
+           "final_return": float(np.mean(returns))}  # fmt: skip
+    if drawn is not None:  # the snapshots its updates drew on average, and a long run's
+        run["snapshots_per_update"] = float(np.mean(drawn)) if drawn else 0.0
+        run["batch_policies"] = min(model.history_batch_policies, model.history_max_policies)
+    return run
+
+
+def snapshots_drawn(model) -> list[int] | None:
+    """For an off-policy PeVFA model, the list its snapshots' updates append the number of snapshots they draw to
+    (None for other models)."""
+    if not isinstance(model, OffPolicyPeVFA):
+        return None
+    drawn: list[int] = []
+    sample = model.history.sample_policy_ids
+
+    def counted(n: int) -> np.ndarray:
+        ids = sample(n)
+        drawn.append(len(ids))
+        return ids
+
+    model.history.sample_policy_ids = counted
+    return drawn
 
 
 def main() -> None:
@@ -115,8 +147,10 @@ def main() -> None:
     for seed in range(args.repeats):
         for name, algorithm in (("base", base), ("pevfa", pevfa)):  # A B A B ...
             runs[name].append(timed_run(algorithm, entries[name], env_id, seed, args.steps, args.eval_episodes))
-            speed, score = runs[name][-1]["steps_per_cpu_s"], runs[name][-1]["final_return"]
-            print(f"seed {seed} {algorithm.__name__}: {speed:.0f} steps/CPU-s, return {score:.0f}", flush=True)
+            run = runs[name][-1]
+            drawn = "snapshots_per_update" in run and f", {run['snapshots_per_update']:.1f} snapshots per update"
+            print(f"seed {seed} {algorithm.__name__}: {run['steps_per_cpu_s']:.0f} steps/CPU-s, return "
+                  f"{run['final_return']:.0f}{drawn or ''}", flush=True)  # fmt: skip
     ratios = np.array([p["steps_per_cpu_s"] / b["steps_per_cpu_s"] for b, p in zip(runs["base"], runs["pevfa"])])
     wall = np.array([b["wall_s"] / p["wall_s"] for b, p in zip(runs["base"], runs["pevfa"])])
     summary = {
@@ -135,6 +169,12 @@ def main() -> None:
             for n, cls in (("base", base), ("pevfa", pevfa))
         )
     )
+    short = [run for run in runs["pevfa"] if run.get("snapshots_per_update", math.inf) < 0.95 * run["batch_policies"]]
+    if short:
+        drawn = [run["snapshots_per_update"] for run in short]
+        print(f"{len(short)} of the {pevfa.__name__} runs drew {min(drawn):.1f}-{max(drawn):.1f} snapshots per update on "
+              f"average, a long run {short[0]['batch_policies']}: a short run's cost; --options "
+              """'{"snapshot_freq": 100}' gives it a long run's updates""")  # fmt: skip
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(summary, indent=1))

@@ -166,6 +166,21 @@ def test_speed_encoder_and_memory_benchmarks(tmp_path):
     assert memory[0]["mb"] < memory[1]["mb"] and memory[1]["policies"] == 4
 
 
+def test_zoo_speed_benchmark_counts_the_snapshots_each_update_draws(tmp_path):
+    out = tmp_path / "speed.json"
+    options = '{"snapshot_freq": 10}'  # the first snapshot at the first gradient step, then one per 10
+    log = _run(str(ROOT / "benchmarks" / "speed_zoo.py"), "--setting", "sac-hopper", "--steps", "300", "--repeats", "1",
+               "--eval-episodes", "1", "--overrides", '{"learning_starts": 100}', "--options", options, "--out", str(out),
+               cwd=ROOT)  # fmt: skip
+    summary = json.loads(out.read_text())
+    base, pevfa = summary["runs"]["base"][0], summary["runs"]["pevfa"][0]
+    assert summary["ratio_median"] == pytest.approx(pevfa["steps_per_cpu_s"] / base["steps_per_cpu_s"])
+    assert "snapshots_per_update" not in base and pevfa["batch_policies"] == 8
+    # 200 gradient steps (env steps 101-300), a snapshots' update per 4 of them: at step g, 1 + g // 10 snapshots exist
+    drawn = [min(8, 1 + step // 10) for step in range(4, 201, 4)]
+    assert pevfa["snapshots_per_update"] == pytest.approx(np.mean(drawn))
+    assert "1 of the SACPeVFA runs drew" in log  # short of a long run's 8: said
+
 def test_denormals_benchmark_runs_every_variant(tmp_path):
     out, conf = tmp_path / "denormals.json", tmp_path / "conf.yml"
     conf.write_text("CartPole-v1:\n  policy: MlpPolicy\n  n_steps: 64\n  batch_size: 32\n")
