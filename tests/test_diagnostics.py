@@ -177,6 +177,30 @@ def test_zero_shot_values(tmp_path, representation):
         predict_policy_values(model, PPOPeVFA("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])), obs)
 
 
+@pytest.mark.parametrize("representation", ["opr", "spr", "random"])
+def test_q_values_of_a_snapshot_as_the_docs_compute_them(representation):
+    from sb3_pevfa import SACPeVFA
+
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, n_state_action_pairs=16,
+                     snapshot_freq=20, learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32, 32]), seed=0)  # fmt: skip
+    model.learn(200)
+    with pytest.raises(TypeError, match=r"critic is Q\(s, a, chi\): chi = model.policy.critic.representation"):
+        predict_policy_values(model, model.history.records([0]), np.zeros((1, 3), np.float32))
+    latest = model.record_snapshot()  # the live actor, its states and its code: the critics' own chi
+    data = model.replay_buffer.sample(64)
+    model.policy.set_training_mode(False)
+    critic = model.policy.critic
+    with th.no_grad():
+        values = {}
+        for k in (0, latest):  # the docs' call
+            chi = critic.representation(PolicyRecord.from_numpy(model.history.records([k]), model.device))
+            values[k] = th.cat(critic(data.observations, data.actions, chi), dim=1)
+        live = th.cat(critic(data.observations, data.actions), dim=1)
+    th.testing.assert_close(values[latest], live)
+    assert (values[0] - live).abs().min() > 1e-4  # the first snapshot's chi: other values
+    assert model.history.policy_ids == list(range(7))  # at gradient steps 1, 20, ..., 100, and the one above
+
+
 def test_zero_shot_values_of_a_saved_a2c_pevfa_or_sb3_model_read_from_its_path(tmp_path):
     from stable_baselines3 import A2C, PPO
 

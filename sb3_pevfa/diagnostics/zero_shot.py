@@ -61,7 +61,9 @@ def predict_policy_values(model, policy: PolicyLike, observations: np.ndarray | 
     """
     if isinstance(model, OffPolicyPeVFA):
         raise TypeError(f"predict_policy_values reads V(s, chi) of a PPOPeVFA or A2CPeVFA model; {type(model).__name__}'s "
-                        "critic is Q(s, a, chi): call model.policy.critic(observations, actions, chi)")  # fmt: skip
+                        "critic is Q(s, a, chi): chi = model.policy.critic.representation(PolicyRecord.from_numpy("
+                        "model.history.records([snapshot_id]), model.device)), then model.policy.critic(observations, "
+                        "actions, chi) gives the twin critics' values")  # fmt: skip
     record = _record(model, policy, observations)
     if record["params"].ndim == 1:
         record = {key: value[None] for key, value in record.items()}
