@@ -181,6 +181,7 @@ def test_zoo_speed_benchmark_counts_the_snapshots_each_update_draws(tmp_path):
     assert pevfa["snapshots_per_update"] == pytest.approx(np.mean(drawn))
     assert "1 of the SACPeVFA runs drew" in log  # short of a long run's 8: said
 
+
 def test_denormals_benchmark_runs_every_variant(tmp_path):
     out, conf = tmp_path / "denormals.json", tmp_path / "conf.yml"
     conf.write_text("CartPole-v1:\n  policy: MlpPolicy\n  n_steps: 64\n  batch_size: 32\n")

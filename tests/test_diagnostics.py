@@ -181,8 +181,8 @@ def test_zero_shot_values(tmp_path, representation):
 def test_q_values_of_a_snapshot_as_the_docs_compute_them(representation):
     from sb3_pevfa import SACPeVFA
 
-    model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, n_state_action_pairs=16,
-                     snapshot_freq=20, learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32, 32]), seed=0)  # fmt: skip
+    tiny = dict(snapshot_freq=20, learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32, 32]), seed=0)
+    model = SACPeVFA("MlpPolicy", "Pendulum-v1", representation=representation, n_state_action_pairs=16, **tiny)
     model.learn(200)
     with pytest.raises(TypeError, match=r"critic is Q\(s, a, chi\): chi = model.policy.critic.representation"):
         predict_policy_values(model, model.history.records([0]), np.zeros((1, 3), np.float32))
