@@ -10,7 +10,7 @@ SB3's in the same repeat; its median and range over the repeats are reported.
 SACPeVFA's and TD3PeVFA's snapshots' updates draw ``history_batch_policies`` snapshots (8) once as many exist, fewer
 before: with a snapshot per 1000 gradient steps a short run pays a cheaper update than a long one. Each of their runs
 records the snapshots its updates drew on average (``snapshots_per_update``) and says where it is short of the long
-run's; ``--options '{"snapshot_freq": 100}'`` gives a short run a long run's updates (8 snapshots from its 800th
+run's; ``--options '{"snapshot_freq": 100}'`` gives a short run a long run's updates (8 snapshots from its 700th
 gradient step on).
 
     # rl-zoo3's shipped A2C settings on CartPole-v1 (8 envs, 5-step rollouts): A2C vs A2CPeVFA's shipped entry
@@ -28,7 +28,6 @@ gradient step on).
 
 import argparse
 import json
-import math
 import pathlib
 import time
 from typing import Any
@@ -169,7 +168,8 @@ def main() -> None:
             for n, cls in (("base", base), ("pevfa", pevfa))
         )
     )
-    short = [run for run in runs["pevfa"] if run.get("snapshots_per_update", math.inf) < 0.95 * run["batch_policies"]]
+    off_policy = [run for run in runs["pevfa"] if "batch_policies" in run]
+    short = [run for run in off_policy if run["snapshots_per_update"] < 0.9 * run["batch_policies"]]
     if short:
         drawn = [run["snapshots_per_update"] for run in short]
         print(f"{len(short)} of the {pevfa.__name__} runs drew {min(drawn):.1f}-{max(drawn):.1f} snapshots per update on "

@@ -180,6 +180,9 @@ def test_zoo_speed_benchmark_counts_the_snapshots_each_update_draws(tmp_path):
     drawn = [min(8, 1 + step // 10) for step in range(4, 201, 4)]
     assert pevfa["snapshots_per_update"] == pytest.approx(np.mean(drawn))
     assert "1 of the SACPeVFA runs drew" in log  # short of a long run's 8: said
+    _run(str(ROOT / "benchmarks" / "speed_zoo.py"), "--setting", "a2c-cartpole", "--steps", "200", "--repeats", "1",
+         "--eval-episodes", "1", "--out", str(out), cwd=ROOT)  # fmt: skip
+    assert all("snapshots_per_update" not in run for runs in json.loads(out.read_text())["runs"].values() for run in runs)
 
 
 def test_denormals_benchmark_runs_every_variant(tmp_path):

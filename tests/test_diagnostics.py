@@ -197,7 +197,7 @@ def test_q_values_of_a_snapshot_as_the_docs_compute_them(representation):
             values[k] = th.cat(critic(data.observations, data.actions, chi), dim=1)
         live = th.cat(critic(data.observations, data.actions), dim=1)
     th.testing.assert_close(values[latest], live)
-    assert (values[0] - live).abs().min() > 1e-4  # the first snapshot's chi: other values
+    assert (values[0] - live).abs().max() > 1e-3  # the first snapshot's chi: other values
     assert model.history.policy_ids == list(range(7))  # at gradient steps 1, 20, ..., 100, and the one above
 
 
