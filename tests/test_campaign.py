@@ -40,6 +40,21 @@ def checkpoints(tmp_path, monkeypatch):
     monkeypatch.setattr(definitions, "CHECKPOINT_DIR", tmp_path / "checkpoints")
 
 
+@pytest.fixture(autouse=True)
+def fresh_stop(monkeypatch):
+    """A stop of each test's own (a stop asked in one test, as the worker's signal handlers ask it, stays there), and
+    the signal handlers and the alarm put back."""
+    stop = training.Stop()
+    monkeypatch.setattr(training, "STOP", stop)
+    monkeypatch.setattr(workers, "STOP", stop)
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)
+    saved = [signal.getsignal(s) for s in stops]
+    yield stop
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    for s, handler in zip(stops, saved):
+        signal.signal(s, handler)
+
+
 def _definition(*variants: str, seeds=("0",), timesteps: int = 4000) -> list[str]:
     return ["--protocol", "paper", "--tasks", TASK, "--variants", *variants, "--seeds", *seeds,
             "--timesteps", str(timesteps), "--eval-freq", "2000", "--eval-episodes", "2"]  # fmt: skip
@@ -942,6 +957,56 @@ def test_a_stopped_trial_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
     assert result["cpu_seconds"] > state["cpu"] and result["eval_cpu_seconds"] > state["eval_cpu"]
 
 
+@pytest.mark.parametrize("protocol, variant, stop_at", [("paper", "opr-e2e", 6000), ("sac", "opr", 1500)])
+def test_a_stop_saves_a_checkpoint_at_the_next_iteration_boundary_and_the_run_goes_on_from_it(
+    tmp_path, monkeypatch, fresh_stop, protocol, variant, stop_at
+):
+    """SIGTERM while the worker evaluates at ``stop_at``: the training goes on to its next iteration boundary (the next
+    rollout's start: after PPO's update of 2000 steps, after SAC's gradient step), saves a checkpoint there and stops;
+    the next run goes on from that moment, not from the last periodic checkpoint (none here)."""
+    if protocol == "sac":
+        use_a_tiny_sac(monkeypatch, learning_starts=900)
+        tiny = definitions.Campaign("sac", (TASK,), ("opr",), (0,), 2000, 500, 2)
+    else:
+        tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e",), (0,), 8000, 2000, 1)
+    signal.signal(signal.SIGTERM, workers._stop)
+    evaluate, folder = training.evaluate_policy, tmp_path / "checkpoint"
+
+    def signalled(model, *args, **kwargs):
+        if model.num_timesteps == stop_at and not fresh_stop.asked:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(training, "evaluate_policy", signalled)
+    with pytest.raises(KeyboardInterrupt):
+        training.train(tiny, TASK, variant, 0, checkpoint=folder, checkpoint_freq=100_000)
+    state = json.loads((folder / "state.json").read_text())
+    assert state["timesteps"] == stop_at and state["curve"]["steps"][-1] == stop_at
+    fresh_stop.asked = False  # the next run's worker
+    result = training.train(tiny, TASK, variant, 0, checkpoint=folder, checkpoint_freq=100_000)
+    assert result["resumed_from"] == stop_at and result["timesteps"] == tiny.timesteps and not folder.exists()
+    assert result["curve"]["steps"] == list(range(tiny.eval_freq, tiny.timesteps + 1, tiny.eval_freq))
+    assert result["curve"]["mean"][: len(state["curve"]["mean"])] == state["curve"]["mean"]
+
+
+def test_a_stop_asked_as_a_training_ends_completes_its_trial_and_stops_the_worker(tmp_path, monkeypatch, fresh_stop):
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
+    journal = str(tmp_path / "end.journal")
+    study, _ = storage.open_study("end", storage.storage_of("end", journal), tiny)
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        with training.STOP.deferred(True):
+            workers._stop()  # SIGTERM in the training's last iteration: taken at the next one, which never comes
+        keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
+        return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
+
+    monkeypatch.setattr(workers, "train", train)
+    with pytest.raises(KeyboardInterrupt):
+        workers.work_on("end", study, tiny)
+    (trial,) = study.get_trials()
+    assert trial.state == TrialState.COMPLETE and storage.pending(study, tiny) == 1
+
+
 def _refused(main, capsys, *args: str) -> str:
     """The usage error a command line ends with (no traceback)."""
     with pytest.raises(SystemExit) as stopped:
@@ -968,6 +1033,7 @@ def test_a_users_mistakes_are_usage_errors_that_store_nothing(tmp_path, capsys):
     assert "protocol 'sac' needs a Box action space, the task's is Discrete(2)" in box
     assert "No campaign 'mine' in " in campaign("status", "--campaign", "mine", "--storage", journal)
     assert "--retry-raised is an option of run" in campaign("status", "--campaign", "table1", "--retry-raised")
+    assert "--fill goes with --until (a deadline)" in campaign("run", "--campaign", "table1", "--fill")
     alone = campaign("run", "--campaign", "mine", "--storage", journal, "--eval-freq", "5")
     assert "belong to a new campaign's definition" in alone
     assert not (tmp_path / "mine.journal").exists()  # none of these stored a definition
@@ -1069,9 +1135,13 @@ def test_a_stopped_run_stops_its_worker_which_marks_its_trial_stopped(tmp_path, 
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
     assert process.returncode == 1 and "stop: stopped; the same run command goes on" in stderr, stderr[-2000:]
-    assert "Traceback" not in stderr and "stopping: the workers mark their trials (at most 30 s)" in stderr
-    trial = _study("stop", journal).trials[running.number]
+    assert "Traceback" not in stderr
+    assert "stopping: the workers save a checkpoint and mark their trials (at most 120 s)" in stderr
+    study, campaign = storage.open_study("stop", storage.storage_of("stop", str(journal)))
+    trial = study.trials[running.number]
     assert trial.state == TrialState.FAIL and trial.user_attrs["interrupted"] == "stopped"
+    saved = json.loads((campaign.checkpoint_folder("stop", storage.grid_point(trial)) / "state.json").read_text())
+    assert saved["timesteps"] >= running.user_attrs["progress"]["steps"]  # where the stop found it, not a restart
 
 
 def test_a_worker_that_does_not_stop_within_the_grace_is_killed(monkeypatch):
@@ -1362,6 +1432,33 @@ def test_a_worker_under_a_deadline_takes_only_the_points_expected_to_end_before_
     assert len(study.get_trials()) == 12 and not [t for t in study.get_trials() if t.state != TrialState.COMPLETE]
 
 
+def test_with_fill_a_worker_takes_the_points_that_fit_first_then_the_others_in_the_campaigns_order(
+    tmp_path, monkeypatch, fresh_stop
+):
+    """30 s left; campaign a's runs take 100 s, b's 10 s: without ``fill`` no point of a; with it b's point first
+    (it ends before the deadline), then a's one by one."""
+    journal = str(tmp_path / "fill.journal")
+    grids = {"a": ("opr-e2e", (0, 1, 2), 100.0), "b": ("ppo", (0, 1), 10.0)}
+    for name, (variant, seeds, wall) in grids.items():
+        tiny = definitions.Campaign("paper", (TASK,), (variant,), seeds, 4000, 2000, 2)
+        study, _ = storage.open_study(name, storage.storage_of(name, journal), tiny)
+        _completed(study, tiny, (TASK, variant, 0), wall)
+    trained = []
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        trained.append((variant, seed))
+        wall = 100.0 if variant == "opr-e2e" else 10.0  # as long as the complete runs: the estimates stay
+        times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
+                 "eval_wall_seconds": 0.1 * wall}  # fmt: skip
+        return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
+
+    monkeypatch.setattr(workers, "train", train)
+    workers.work_on_all(["a"], journal, until=time.time() + 30)
+    assert trained == []
+    workers.work_on_all(["a", "b"], journal, until=time.time() + 30, fill=True)
+    assert trained[0] == ("ppo", 1) and sorted(trained[1:]) == [("opr-e2e", 1), ("opr-e2e", 2)]
+
+
 def test_a_deadline_leaves_a_waiting_retry_that_would_not_end_before_it():
     tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
     study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
@@ -1414,8 +1511,9 @@ def test_run_gives_its_workers_the_deadline_and_says_how_many_points_it_left(tmp
 
     monkeypatch.setattr(workers.subprocess, "Popen", popen)
     until = time.time() + 600
-    workers.run(["left"], journal, 1, 1800.0, until=until)
+    workers.run(["left"], journal, 1, 1800.0, until=until, fill=True)
     (command,) = commands
+    assert command[-1] == "--fill"
     from engine.deadline import parse_until
 
     assert parse_until(command[command.index("--until") + 1]) == pytest.approx(until, abs=1e-3)

@@ -43,7 +43,12 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
                              "many seconds is failed and enqueued again (here: once its process is gone)")  # fmt: skip
     parser.add_argument("--until", default=None,
                         help="run, work: a deadline: only grid points expected to end before it are taken, and trials "
-                             f"still running at it stop (as by SIGTERM; the next run goes on): {UNTIL_FORMS}")  # fmt: skip
+                             "still running at it stop (as by SIGTERM: a checkpoint at the next iteration boundary; "
+                             f"the next run goes on from it): {UNTIL_FORMS}")  # fmt: skip
+    parser.add_argument("--fill", action="store_true",
+                        help="run, work with --until: where nothing left is expected to end before the deadline, take "
+                             "a grid point that is not, in the campaigns' order (it stops at the deadline and the "
+                             "next run goes on from its checkpoint, on a machine that keeps them)")  # fmt: skip
     parser.add_argument("--retry-raised", action="store_true",
                         help="run: enqueue again the grid points whose training raised (once the cause is mended; "
                              "the status shows each one's exception)")  # fmt: skip
@@ -67,6 +72,8 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
         parser.error("--retry-raised is an option of run")
     if args.until is not None and args.command == "status":
         parser.error("--until is an option of run and work")
+    if args.fill and args.until is None:
+        parser.error("--fill goes with --until (a deadline)")
     try:
         until = None if args.until is None else parse_until(args.until, passed=args.command == "work")
     except ValueError as error:
@@ -80,9 +87,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
     except ValueError as error:
         parser.error(str(error))
     if args.command == "run":
-        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised, until)
+        run(args.campaign, args.storage, args.workers, args.stale_after, args.retry_raised, until, args.fill)
     elif args.command == "work":
-        work(args.campaign, args.storage, args.stale_after, until)
+        work(args.campaign, args.storage, args.stale_after, until, args.fill)
     else:
         try:
             status(args.campaign, args.storage, args.workers)

@@ -46,13 +46,41 @@ CHECKPOINT_FREQ = 100_000
 EVAL_SEED_OFFSET = 10_000
 
 
+class Stop:
+    """A stop asked of a worker (SIGINT, SIGTERM, the deadline). A training that keeps checkpoints takes it at its next
+    iteration boundary, after a checkpoint saved there (``CurveCallback``), so that the next run goes on from the
+    moment it stopped; anything else stops at once."""
+
+    def __init__(self) -> None:
+        self.asked = False
+        self.deferrable = False
+
+    def ask(self) -> bool:
+        """The stop asked; whether a training takes it at its next iteration boundary (else the caller stops now)."""
+        self.asked = True
+        return self.deferrable
+
+    @contextlib.contextmanager
+    def deferred(self, deferrable: bool) -> Iterator[None]:
+        """Inside, a stop is taken at the training's next iteration boundary where ``deferrable``."""
+        self.deferrable = deferrable
+        try:
+            yield
+        finally:
+            self.deferrable = False
+
+
+#: This process's stop (a worker's signal handlers ask it)
+STOP = Stop()
+
+
 class CurveCallback(BaseCallback):
     """Evaluates every ``eval_freq`` env steps over ``n_eval_episodes`` episodes (SB3's ``evaluate_policy``;
     deterministic actions unless ``deterministic=False``), records the training's CPU and wall-clock seconds so far
     (evaluations and checkpoints apart), and reports the mean return to the Optuna trial, with a heartbeat. With a
     ``checkpoint`` folder, it saves the model, its history, the ``diagnostic``'s state (if any) and its own state
-    there at the first iteration boundary after every ``checkpoint_freq`` env steps; ``state`` is such a saved state,
-    to go on from."""
+    there at the first iteration boundary after every ``checkpoint_freq`` env steps, and at the first one after a
+    ``STOP`` is asked, then raises ``KeyboardInterrupt``; ``state`` is such a saved state, to go on from."""
 
     def __init__(
         self,
@@ -75,7 +103,8 @@ class CurveCallback(BaseCallback):
         self.before = {key: state.get(key, 0.0) for key in ("cpu", "wall", "eval_cpu", "eval_wall")}
         self.segment_eval_cpu = self.segment_eval_wall = 0.0
         self.start_cpu, self.start_wall = time.process_time(), time.perf_counter()
-        self.next_checkpoint = (state.get("timesteps", 0) // checkpoint_freq + 1) * checkpoint_freq if checkpoint_freq else 0
+        self.saved_at = state.get("timesteps", 0)
+        self.next_checkpoint = (self.saved_at // checkpoint_freq + 1) * checkpoint_freq if checkpoint_freq else 0
 
     @property
     def eval_cpu(self) -> float:
@@ -117,11 +146,15 @@ class CurveCallback(BaseCallback):
         return True
 
     def _on_rollout_start(self) -> None:
-        if self.checkpoint is None or not self.checkpoint_freq or self.num_timesteps < self.next_checkpoint:
-            return
-        with self.apart():
-            save_checkpoint(self.checkpoint, self.model, self.state(), self.diagnostic)
-        self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+        due = bool(self.checkpoint_freq) and self.num_timesteps >= self.next_checkpoint
+        if self.checkpoint is not None and (due or STOP.asked) and self.num_timesteps > self.saved_at:
+            with self.apart():
+                save_checkpoint(self.checkpoint, self.model, self.state(), self.diagnostic)
+            self.saved_at = self.num_timesteps
+            if self.checkpoint_freq:
+                self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+        if STOP.asked and STOP.deferrable:
+            raise KeyboardInterrupt
 
     def state(self) -> dict[str, Any]:
         cpu, wall = self.training_time()
@@ -213,7 +246,8 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
                              state, deterministic, diagnostic)  # fmt: skip
     # the diagnostic's hooks first: at an iteration's start it logs the last one before the checkpoint is saved
     callbacks = [callback] if diagnostic is None else [diagnostic, callback]
-    model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
+    with STOP.deferred(checkpoint is not None):  # a stop: a checkpoint at the next iteration boundary, then stopped
+        model.learn(campaign.timesteps - model.num_timesteps, callback=callbacks, reset_num_timesteps=resumed is None)
     cpu, wall = callback.training_time()
     curve = callback.curve
     if checkpoint is not None:

@@ -36,14 +36,15 @@ from .storage import (
     running,
     storage_of,
 )
-from .training import provenance, train
+from .training import STOP, provenance, train
 
 #: The command line of a worker process (``storage`` knows a live worker by it)
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
 #: The exit status of a worker stopped by SIGINT or SIGTERM (a shell's for SIGINT)
 STOPPED = 130
-#: Seconds ``run``, stopped, gives its workers to mark their trials and exit before it kills one still running
-STOP_GRACE = 30.0
+#: Seconds ``run``, stopped, gives its workers to save a checkpoint, mark their trials and exit before it kills one
+#: still running
+STOP_GRACE = 120.0
 #: Seconds between ``run``'s readings of the grids' progress
 PROGRESS_EVERY = 10.0
 #: Seconds at most between a worker's looks for a trial to take over while others run the last grid points
@@ -126,18 +127,21 @@ def _ignore_stops(exiting: bool = False) -> None:
 
 
 def _stop(*_: Any) -> None:
-    """SIGINT, SIGTERM: the trial is marked interrupted (and enqueued again by the next ``run``); a second signal while
-    it stops is ignored, so that it cannot cut the marking short."""
+    """SIGINT, SIGTERM, the deadline: a training goes on to its next iteration boundary and saves a checkpoint there
+    (``training.STOP``), then the trial is marked interrupted (and enqueued again by the next ``run``); a second
+    signal while it stops is ignored, so that it cannot cut the checkpoint or the marking short."""
     _ignore_stops()
-    raise KeyboardInterrupt
+    if not STOP.ask():  # no training that takes it later: at once
+        raise KeyboardInterrupt
 
 
-def work(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None) -> None:
+def work(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None,
+         fill: bool = False) -> None:  # fmt: skip
     """One worker (:func:`work_on_all`); stopped (SIGINT, SIGTERM, the deadline), it exits with ``STOPPED`` and no
     traceback."""
     logging.getLogger("optuna.study._optimize").addFilter(_without_stop_traceback)  # its one-line warning stays
     try:
-        work_on_all(names, storage, stale_after, until)
+        work_on_all(names, storage, stale_after, until, fill)
     except KeyboardInterrupt:
         _ignore_stops(exiting=True)
         raise SystemExit(STOPPED) from None
@@ -150,11 +154,13 @@ def _without_stop_traceback(record: logging.LogRecord) -> bool:
     return True
 
 
-def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None) -> None:
+def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800.0, until: float | None = None,
+                fill: bool = False) -> None:  # fmt: skip
     """Trials of the campaigns one after another, each campaign's grid before the next one's; then, while other
     workers run the last grid points, it waits, and runs any whose worker dies. With ``until`` (seconds since the
-    epoch) only grid points expected to end before it (a campaign's others left to the next one's), and at ``until``
-    it stops as by SIGTERM (:mod:`~engine.deadline`)."""
+    epoch) only grid points expected to end before it (a campaign's others left to the next one's), with ``fill``
+    then one that is not, in the campaigns' order, and the same again; at ``until`` it stops as by SIGTERM
+    (:mod:`~engine.deadline`)."""
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     deadline = None if until is None else Deadline(until, names, storage)
@@ -164,10 +170,16 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
     studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
-    for name, study, campaign in studies:
-        work_on(name, study, campaign, deadline)
+    while True:
+        for name, study, campaign in studies:
+            work_on(name, study, campaign, deadline)
+        # nothing left that ends before the deadline: with fill, one point that goes on from its checkpoint later
+        if not (fill and deadline is not None and any(work_on(*studied, once=True) for studied in studies)):
+            break
     delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
+        if STOP.asked:  # asked as a training ended
+            raise KeyboardInterrupt
         time.sleep(delay)
         delay = min(2 * delay, WAIT_AT_MOST)
         for name, study, campaign in studies:
@@ -175,7 +187,10 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
             work_on(name, study, campaign, deadline)
 
 
-def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None) -> None:
+def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None,
+            once: bool = False) -> bool:  # fmt: skip
+    """The campaign's grid points, trial after trial (with a ``deadline``, only those expected to end before it;
+    ``once``: one trial at most); whether it ran one."""
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
@@ -189,11 +204,15 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadli
             line = trial.state.name
         print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
 
-    rng = random.Random()  # seeded from the OS: workers draw apart
-    while pending(study, campaign):
+    rng, ran = random.Random(), False  # seeded from the OS: workers draw apart
+    while pending(study, campaign) and not (once and ran):
+        if STOP.asked:  # asked as a training ended: its trial is complete, the worker stops before the next one
+            raise KeyboardInterrupt
         if not draw(study, campaign, rng, deadline and deadline.fitting(name, campaign)):
-            return  # nothing left that ends before the deadline (or another worker took the last point)
+            break  # nothing left that ends before the deadline (or another worker took the last point)
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
+        ran = True
+    return ran
 
 
 def unmakeable(protocol: str, tasks: tuple[str, ...] | list[str]) -> list[str]:
@@ -239,10 +258,11 @@ def run(
     stale_after: float,
     retry_raised: bool = False,
     until: float | None = None,
+    fill: bool = False,
 ) -> None:
     """Recover the trials of dead workers (with ``retry_raised``, the grid points whose training raised too), check
     that the tasks left can be made, start ``workers`` worker processes over the campaigns in order (with ``until``,
-    a deadline: :mod:`~engine.deadline`) and show the grids' progress."""
+    a deadline, and ``fill``: :mod:`~engine.deadline`) and show the grids' progress."""
     studies = []
     for name in names:
         study, campaign = open_study(name, storage_of(name, storage))
@@ -260,6 +280,7 @@ def run(
     command += ["--stale-after", str(stale_after)]
     command += ["--storage", storage] if storage else []
     command += ["--until", datetime.datetime.fromtimestamp(until).astimezone().isoformat()] if until is not None else []
+    command += ["--fill"] if fill else []
     processes = [subprocess.Popen(command) for _ in range(workers)]
 
     def stop(*_: Any) -> None:
@@ -309,11 +330,13 @@ def wait_any(processes: list[subprocess.Popen], seconds: float) -> None:
 
 
 def stop_workers(processes: list[subprocess.Popen]) -> None:
-    """The workers told to stop (SIGTERM; one already stopping ignores it) and given ``STOP_GRACE`` seconds to mark
-    their trials and exit; one still running then is killed (the next ``run`` recovers its trial, its worker gone)."""
+    """The workers told to stop (SIGTERM; one already stopping ignores it) and given ``STOP_GRACE`` seconds to save a
+    checkpoint, mark their trials and exit; one still running then is killed (the next ``run`` recovers its trial, its
+    worker gone, and goes on from its last checkpoint)."""
     _ignore_stops()  # a second Ctrl-C or kill cannot cut the wait short
     with contextlib.suppress(OSError):  # stderr may have gone with the terminal or the pipe
-        print(f"stopping: the workers mark their trials (at most {STOP_GRACE:.0f} s)", file=sys.stderr, flush=True)
+        print(f"stopping: the workers save a checkpoint and mark their trials (at most {STOP_GRACE:.0f} s)",
+              file=sys.stderr, flush=True)  # fmt: skip
     for process in processes:
         if process.poll() is None:
             process.send_signal(signal.SIGTERM)
