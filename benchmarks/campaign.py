@@ -11,13 +11,13 @@ repository, so a campaign resumes from git on any machine; ``--storage postgresq
 any number of machines pull trials from one database, with Optuna's heartbeat failing the trials of dead workers and
 ``RetryHeartbeatStaleTrialCallback`` enqueueing them again. On a journal file, ``run`` first fails the RUNNING trials
 whose worker is gone (its process on this machine, or no heartbeat for ``--stale-after`` seconds) and enqueues each
-again; a trial stopped by SIGINT/SIGTERM saves a checkpoint at its next iteration boundary, is enqueued again too,
-and goes on from that checkpoint where the machine kept it. A grid point whose worker died more than ``MAX_RETRY``
-times (stops do not count) and a trial whose training raised stay failed (the report lists both; the status shows the
-exception, and ``run --retry-raised`` enqueues such grid points again once the cause is mended). ``run`` makes each
-task left to train once before any worker starts, so that a missing dependency (Box2D, MuJoCo) stops it with its
-reason. A worker out of grid points waits while others run the last ones and takes over any whose worker dies. A
-task, variant and seed counts once in the report, however often it ran.
+again; a trial stopped by SIGINT/SIGTERM saves a checkpoint at its next iteration boundary (protocol zoo apart), is
+enqueued again too, and goes on from that checkpoint where the machine kept it. A grid point whose worker died more
+than ``MAX_RETRY`` times (stops do not count) and a trial whose training raised stay failed (the report lists both;
+the status shows the exception, and ``run --retry-raised`` enqueues such grid points again once the cause is mended).
+``run`` makes each task left to train once before any worker starts, so that a missing dependency (Box2D, MuJoCo)
+stops it with its reason. A worker out of grid points waits while others run the last ones and takes over any whose
+worker dies. A task, variant and seed counts once in the report, however often it ran.
 
     # every campaign, its grid and how much of it is done
     python benchmarks/campaign.py status

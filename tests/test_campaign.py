@@ -24,6 +24,7 @@ import pytest
 import torch
 from optuna.distributions import CategoricalDistribution
 from optuna.trial import TrialState
+from stable_baselines3.common.env_util import make_vec_env
 
 ROOT = pathlib.Path(__file__).parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -982,6 +983,9 @@ def test_a_stop_saves_a_checkpoint_at_the_next_iteration_boundary_and_the_run_go
         training.train(tiny, TASK, variant, 0, checkpoint=folder, checkpoint_freq=100_000)
     state = json.loads((folder / "state.json").read_text())
     assert state["timesteps"] == stop_at and state["curve"]["steps"][-1] == stop_at
+    if protocol == "sac":  # with every transition so far
+        model, _ = training.load_checkpoint(folder, protocol, variant, make_vec_env(TASK))
+        assert model.replay_buffer.size() == stop_at
     fresh_stop.asked = False  # the next run's worker
     result = training.train(tiny, TASK, variant, 0, checkpoint=folder, checkpoint_freq=100_000)
     assert result["resumed_from"] == stop_at and result["timesteps"] == tiny.timesteps and not folder.exists()
@@ -995,8 +999,7 @@ def test_a_stop_asked_as_a_training_ends_completes_its_trial_and_stops_the_worke
     study, _ = storage.open_study("end", storage.storage_of("end", journal), tiny)
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
-        with training.STOP.deferred(True):
-            workers._stop()  # SIGTERM in the training's last iteration: taken at the next one, which never comes
+        workers._stop()  # SIGTERM as the training ends (its last iteration, or after it): the run is stored first
         keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
         return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
 
@@ -1288,8 +1291,11 @@ def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_
     folder = tmp_path / "checkpoint"
     with pytest.raises(KeyboardInterrupt):
         training.train(tiny, TASK, "opr", 0, checkpoint=folder, checkpoint_freq=1000)
-    assert {p.name for p in folder.iterdir()} >= {"model.zip", "history.npz", "replay_buffer.pkl", "state.json"}
     state = json.loads((folder / "state.json").read_text())
+    # one set of files named by the checkpoint's env steps (the first one's removed as the second one was saved)
+    names = ["model-1000.zip", "history-1000.npz", "replay_buffer-1000.pkl"]
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*names, "state.json"])
+    assert [training.checkpoint_file(folder, state, key).name for key in ("model", "history", "replay_buffer")] == names
     loaded, load = [], training.load_checkpoint
 
     def loading(*args):  # what the resumed model holds as it is loaded
@@ -1304,6 +1310,37 @@ def test_an_off_policy_trial_trains_sacpevfa_and_resumes_with_its_replay_buffer_
     assert result["curve"]["steps"] == [500, 1000, 1500, 2000] and state["n_policies"] == 1  # the first update's
     arguments = result["arguments"]
     assert arguments["snapshot_freq"] == "1000" and arguments["learning_starts"] == "900"  # the mixin's and SAC's
+
+
+def test_a_checkpoint_is_one_set_of_files_a_kill_while_saving_leaves_the_previous_one(tmp_path, monkeypatch):
+    use_a_tiny_sac(monkeypatch, learning_starts=100)
+    model = training.make_model("sac", "opr", make_vec_env(TASK), 0)
+    model.learn(200)
+    folder = tmp_path / "checkpoint"
+    training.save_checkpoint(folder, model, {"timesteps": 200})
+    model.learn(100, reset_num_timesteps=False)
+
+    def killed(path):  # the kill comes as the replay buffer is written, after the model and the snapshots
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(model, "save_replay_buffer", killed)
+    with pytest.raises(KeyboardInterrupt):
+        training.save_checkpoint(folder, model, {"timesteps": 300})
+    loaded, state = training.load_checkpoint(folder, "sac", "opr", make_vec_env(TASK))
+    assert state["timesteps"] == loaded.num_timesteps == loaded.replay_buffer.size() == 200
+    monkeypatch.delattr(model, "save_replay_buffer")
+    training.save_checkpoint(folder, model, {"timesteps": 300})
+    names = ["history-300.npz", "model-300.zip", "replay_buffer-300.pkl", "state.json"]
+    assert sorted(path.name for path in folder.iterdir()) == names  # the previous set and the broken one removed
+    # a checkpoint saved before the files were named by their env steps
+    state = json.loads((folder / "state.json").read_text())
+    for key, name in state.pop("files").items():
+        (folder / name).rename(folder / training.UNNAMED_FILES[key])
+    (folder / "state.json").write_text(json.dumps(state))
+    loaded, _ = training.load_checkpoint(folder, "sac", "opr", make_vec_env(TASK))
+    assert loaded.num_timesteps == loaded.replay_buffer.size() == 300
+    (folder / "model.zip").unlink()  # a file missing: no checkpoint to go on from, the run starts over
+    assert training.load_checkpoint(folder, "sac", "opr", make_vec_env(TASK)) is None
 
 
 def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
@@ -1333,18 +1370,17 @@ def test_a_diagnostic_trial_goes_on_from_its_checkpoint_with_its_critic_and_seri
     is the uninterrupted run's up to the checkpoint, then the windows opened after it (the open ones are lost)."""
     import copy
 
-    from stable_baselines3.common.env_util import make_vec_env
-
     from sb3_pevfa.diagnostics import QLocalGeneralizationCallback
 
     use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 1)
     whole, folder = whole_then_stopped(tiny, 1500, 1000, tmp_path, monkeypatch)
-    saved = torch.load(folder / "diagnostic.pt")
+    file = training.checkpoint_file(folder, json.loads((folder / "state.json").read_text()), "diagnostic")
+    saved = torch.load(file)
     assert saved["timesteps"] == 1000 and [r["policy_id"] for r in saved["results"]] == [0]
-    torch.save({**saved, "timesteps": 500}, folder / "diagnostic.pt")  # another checkpoint's: the run starts over
+    torch.save({**saved, "timesteps": 500}, file)  # another checkpoint's: the run starts over
     assert training.load_checkpoint(folder, "sac", "opr+local-generalization", make_vec_env(TASK)) is None
-    torch.save(saved, folder / "diagnostic.pt")
+    torch.save(saved, file)
     started = []  # the conventional critic when the resumed learn starts: the saved one
     init = QLocalGeneralizationCallback._init_callback
     monkeypatch.setattr(
@@ -1432,31 +1468,40 @@ def test_a_worker_under_a_deadline_takes_only_the_points_expected_to_end_before_
     assert len(study.get_trials()) == 12 and not [t for t in study.get_trials() if t.state != TrialState.COMPLETE]
 
 
-def test_with_fill_a_worker_takes_the_points_that_fit_first_then_the_others_in_the_campaigns_order(
-    tmp_path, monkeypatch, fresh_stop
-):
-    """30 s left; campaign a's runs take 100 s, b's 10 s: without ``fill`` no point of a; with it b's point first
-    (it ends before the deadline), then a's one by one."""
+def test_with_fill_a_worker_takes_the_points_that_fit_first_then_the_others_one_at_a_time_in_order(tmp_path, monkeypatch):
+    """30 s left; the runs of campaigns z (protocol zoo), a and c take 100 s, b's 10 s. Without ``fill`` no point of
+    a; with it a's first (z's rl-zoo3 training keeps no checkpoint), one at a time: b's retry, enqueued meanwhile,
+    ends before the deadline and comes next; then a's other point, then c's."""
     journal = str(tmp_path / "fill.journal")
-    grids = {"a": ("opr-e2e", (0, 1, 2), 100.0), "b": ("ppo", (0, 1), 10.0)}
+    grids = {"a": ("opr-e2e", (0, 1, 2), 100.0), "b": ("ppo", (0, 1), 10.0), "c": ("opr-e2e", (5, 6), 100.0)}
     for name, (variant, seeds, wall) in grids.items():
         tiny = definitions.Campaign("paper", (TASK,), (variant,), seeds, 4000, 2000, 2)
         study, _ = storage.open_study(name, storage.storage_of(name, journal), tiny)
-        _completed(study, tiny, (TASK, variant, 0), wall)
+        _completed(study, tiny, (TASK, variant, seeds[0]), wall)
+    b, b_campaign = storage.open_study("b", storage.storage_of("b", journal))  # its point of seed 1 stopped: not pending
+    distributions = {name: CategoricalDistribution(values) for name, values in b_campaign.search_space.items()}
+    b.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 1},
+                                    distributions=distributions))  # fmt: skip
+    zoo = definitions.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/learning.yml")
+    storage.open_study("z", storage.storage_of("z", journal), zoo)
     trained = []
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
-        trained.append((variant, seed))
-        wall = 100.0 if variant == "opr-e2e" else 10.0  # as long as the complete runs: the estimates stay
+        trained.append((campaign_.protocol, variant, seed))
+        if len(trained) == 1:  # the stopped point of b enqueued again (as run recovers it) while a's trains
+            storage.enqueue(b, (TASK, "ppo", 1))
+        wall = 10.0 if variant == "ppo" else 100.0  # as long as the complete runs: the estimates stay
         times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
                  "eval_wall_seconds": 0.1 * wall}  # fmt: skip
         return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
 
     monkeypatch.setattr(workers, "train", train)
-    workers.work_on_all(["a"], journal, until=time.time() + 30)
+    workers.work_on_all(["z", "a", "c"], journal, until=time.time() + 30)
     assert trained == []
-    workers.work_on_all(["a", "b"], journal, until=time.time() + 30, fill=True)
-    assert trained[0] == ("ppo", 1) and sorted(trained[1:]) == [("opr-e2e", 1), ("opr-e2e", 2)]
+    workers.work_on_all(["z", "a", "b", "c"], journal, until=time.time() + 30, fill=True)
+    assert [point[1:] for point in trained[1:]] == [("ppo", 1), ("opr-e2e", ({1, 2} - {trained[0][2]}).pop()),
+                                                    ("opr-e2e", 6)]  # fmt: skip
+    assert trained[0][:2] == ("paper", "opr-e2e") and trained[0][2] in (1, 2)
 
 
 def test_a_deadline_leaves_a_waiting_retry_that_would_not_end_before_it():
@@ -1480,7 +1525,11 @@ def test_a_trial_running_at_the_deadline_stops_as_by_sigterm(tmp_path, monkeypat
     study, _ = storage.open_study("late", storage.storage_of("late", journal), tiny)
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
-        time.sleep(60)  # the deadline's alarm ends it
+        end = time.monotonic() + 60
+        while time.monotonic() < end:  # the deadline's alarm asks the stop, which the next iteration takes
+            time.sleep(0.05)
+            if training.STOP.asked:
+                raise KeyboardInterrupt
         raise AssertionError("not stopped")
 
     monkeypatch.setattr(workers, "train", train)

@@ -47,8 +47,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
                              f"the next run goes on from it): {UNTIL_FORMS}")  # fmt: skip
     parser.add_argument("--fill", action="store_true",
                         help="run, work with --until: where nothing left is expected to end before the deadline, take "
-                             "a grid point that is not, in the campaigns' order (it stops at the deadline and the "
-                             "next run goes on from its checkpoint, on a machine that keeps them)")  # fmt: skip
+                             "a grid point that is not, one at a time, in the campaigns' order, protocol zoo apart (it "
+                             "stops at the deadline and the next run goes on from its checkpoint, on a machine that "
+                             "keeps them)")  # fmt: skip
     parser.add_argument("--retry-raised", action="store_true",
                         help="run: enqueue again the grid points whose training raised (once the cause is mended; "
                              "the status shows each one's exception)")  # fmt: skip

@@ -16,7 +16,7 @@ import sys
 import tempfile
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -61,13 +61,14 @@ class Stop:
         return self.deferrable
 
     @contextlib.contextmanager
-    def deferred(self, deferrable: bool) -> Iterator[None]:
-        """Inside, a stop is taken at the training's next iteration boundary where ``deferrable``."""
-        self.deferrable = deferrable
+    def deferred(self, deferrable: bool = True) -> Iterator[None]:
+        """Inside, where ``deferrable``, a stop is only recorded: a training takes it at its next iteration boundary,
+        a worker after the trial it runs is stored."""
+        before, self.deferrable = self.deferrable, deferrable or self.deferrable
         try:
             yield
         finally:
-            self.deferrable = False
+            self.deferrable = before
 
 
 #: This process's stop (a worker's signal handlers ask it)
@@ -162,48 +163,74 @@ class CurveCallback(BaseCallback):
                 "eval_cpu": self.eval_cpu, "eval_wall": self.eval_wall}  # fmt: skip
 
 
+#: The files of a checkpoint saved before their names held its env steps
+UNNAMED_FILES = {"model": "model.zip", "history": "history.npz", "replay_buffer": "replay_buffer.pkl",
+                 "diagnostic": "diagnostic.pt"}  # fmt: skip
+
+
 def save_checkpoint(
     folder: pathlib.Path, model: PPO, state: dict[str, Any], diagnostic: ResumableDiagnostic | None = None
 ) -> None:
-    """The model, its history, the diagnostic's state and ``state``, each file replaced whole (a kill leaves the
-    previous one or the new one; the state, written last, names the steps the model and the diagnostic must have)."""
+    """The model, its history, its replay buffer, the diagnostic's state and ``state``, as one set: each file named by
+    the env steps, ``state.json`` written last names them (a kill at any moment leaves the previous set or the new
+    one whole), then the previous set removed."""
     folder.mkdir(parents=True, exist_ok=True)
+    files = {}
+
+    def written(key: str, suffix: str, write: Callable[[pathlib.Path], None]) -> None:
+        files[key] = f"{key}-{model.num_timesteps}{suffix}"
+        write(folder / f"{key}.tmp{suffix}")
+        os.replace(folder / f"{key}.tmp{suffix}", folder / files[key])
+
     if diagnostic is not None:
-        th.save({**diagnostic.state_dict(), "timesteps": model.num_timesteps}, folder / "diagnostic.tmp.pt")
-        os.replace(folder / "diagnostic.tmp.pt", folder / "diagnostic.pt")
-    model.save(folder / "model.tmp.zip")
-    os.replace(folder / "model.tmp.zip", folder / "model.zip")
+        written("diagnostic", ".pt", lambda path: th.save({**diagnostic.state_dict(), "timesteps": model.num_timesteps}, path))
+    written("model", ".zip", model.save)
     if hasattr(model, "save_history"):  # a PeVFA: its policy history or snapshots
-        model.save_history(folder / "history.tmp.npz")
-        os.replace(folder / "history.tmp.npz", folder / "history.npz")
+        written("history", ".npz", model.save_history)
         state = {**state, "n_policies": model.history.n_policies}
     if isinstance(model, OffPolicyAlgorithm):  # its replay buffer, to go on from
-        model.save_replay_buffer(folder / "replay_buffer.tmp.pkl")
-        os.replace(folder / "replay_buffer.tmp.pkl", folder / "replay_buffer.pkl")
-    (folder / "state.tmp.json").write_text(json.dumps(state))
+        written("replay_buffer", ".pkl", model.save_replay_buffer)
+    (folder / "state.tmp.json").write_text(json.dumps({**state, "files": files}))
     os.replace(folder / "state.tmp.json", folder / "state.json")
+    for path in folder.iterdir():
+        if path.name not in (*files.values(), "state.json"):
+            path.unlink()
+
+
+def checkpoint_file(folder: pathlib.Path, state: dict[str, Any], key: str) -> pathlib.Path:
+    """The file ``key`` (model, history, replay_buffer, diagnostic) of the checkpoint whose state is ``state``."""
+    return folder / state.get("files", UNNAMED_FILES)[key]
 
 
 def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
-    """The model and state saved in ``folder``, or None where there is none or its files do not belong together. A
-    diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together (or
+    one is missing). A diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
     if folder is None or not (folder / "state.json").exists():
         return None
     state = json.loads((folder / "state.json").read_text())
+    needed = ["model"] + ["history"] * (VARIANTS[protocol][variant] is not None)
+    needed += ["replay_buffer"] * (protocol in OFF_POLICY) + ["diagnostic"] * (variant in LOCAL_GENERALIZATION)
+    if not all(checkpoint_file(folder, state, key).exists() for key in needed):
+        return None
     if variant in LOCAL_GENERALIZATION:
-        if not (folder / "diagnostic.pt").exists():
-            return None
-        state["diagnostic"] = th.load(folder / "diagnostic.pt")
+        state["diagnostic"] = th.load(checkpoint_file(folder, state, "diagnostic"))
         if state["diagnostic"].pop("timesteps") != state["timesteps"]:
             return None
-    model = algorithm_of(protocol, variant).load(folder / "model.zip", env=env)
+    model = algorithm_of(protocol, variant).load(checkpoint_file(folder, state, "model"), env=env)
     if hasattr(model, "load_history"):
-        model.load_history(folder / "history.npz")
+        model.load_history(checkpoint_file(folder, state, "history"))
         if model.history.n_policies != state["n_policies"]:
             return None
     if isinstance(model, OffPolicyAlgorithm):
-        model.load_replay_buffer(folder / "replay_buffer.pkl")
+        model.load_replay_buffer(checkpoint_file(folder, state, "replay_buffer"))
     return (model, state) if model.num_timesteps == state["timesteps"] else None
+
+
+def remove_checkpoint(folder: pathlib.Path) -> None:
+    """The folder removed, its ``state.json`` first (a kill leaves no checkpoint to go on from, or a whole one)."""
+    with contextlib.suppress(FileNotFoundError):
+        (folder / "state.json").unlink()
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def algorithm_of(protocol: str, variant: str) -> type:
@@ -251,7 +278,7 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     cpu, wall = callback.training_time()
     curve = callback.curve
     if checkpoint is not None:
-        shutil.rmtree(checkpoint, ignore_errors=True)
+        remove_checkpoint(checkpoint)
     env.close()
     eval_env.close()
     return {

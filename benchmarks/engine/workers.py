@@ -72,9 +72,12 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
             folder = campaign.checkpoint_folder(trial.study.study_name, point)
-            result = train(campaign, task, variant, seed, trial, checkpoint=folder)
-            for key, value in result.items():
-                trial.set_user_attr(key, value)
+            # a stop: taken at the training's next iteration boundary, or, once it is complete, after it is stored
+            # (rl-zoo3's training of protocol zoo, a process of its own without checkpoints, stops at once)
+            with STOP.deferred(campaign.protocol != "zoo"):
+                result = train(campaign, task, variant, seed, trial, checkpoint=folder)
+                for key, value in result.items():
+                    trial.set_user_attr(key, value)
         except (KeyboardInterrupt, SystemExit):
             trial.set_user_attr("interrupted", "stopped")
             raise
@@ -174,7 +177,9 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
         for name, study, campaign in studies:
             work_on(name, study, campaign, deadline)
         # nothing left that ends before the deadline: with fill, one point that goes on from its checkpoint later
-        if not (fill and deadline is not None and any(work_on(*studied, once=True) for studied in studies)):
+        # (not of protocol zoo, whose rl-zoo3 training keeps no checkpoint)
+        fillable = [studied for studied in studies if studied[2].protocol != "zoo"]
+        if not (fill and deadline is not None and any(work_on(*studied, once=True) for studied in fillable)):
             break
     delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
