@@ -1504,6 +1504,33 @@ def test_with_fill_a_worker_takes_the_points_that_fit_first_then_the_others_one_
     assert trained[0][:2] == ("paper", "opr-e2e") and trained[0][2] in (1, 2)
 
 
+def test_with_fill_a_dead_workers_trial_comes_before_the_points_left(tmp_path, monkeypatch):
+    """Campaign a's runs take 100 s, 30 s are left; its point of seed 1 runs in a worker that died: with ``fill`` the
+    worker retries it before it takes seed 2 (it recovers dead workers' trials as it does waiting at a grid's end)."""
+    tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e",), (0, 1, 2), 4000, 2000, 2)
+    journal = str(tmp_path / "dead.journal")
+    study, _ = storage.open_study("a", storage.storage_of("a", journal), tiny)
+    _completed(study, tiny, (TASK, "opr-e2e", 0), 100.0)
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a worker of this machine that is gone, its heartbeat recent
+    attrs = {"worker": {"host": socket.gethostname(), "boot_id": storage.boot_id(), "pid": gone.pid},
+             "heartbeat": time.time()}  # fmt: skip
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    params = {"task": TASK, "variant": "opr-e2e", "seed": 1}
+    study.add_trial(optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions,
+                                        user_attrs=attrs))  # fmt: skip
+    trained = []
+
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+        trained.append(seed)
+        times = {"cpu_seconds": 90.0, "eval_cpu_seconds": 10.0, "wall_seconds": 90.0, "eval_wall_seconds": 10.0}
+        return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
+
+    monkeypatch.setattr(workers, "train", train)
+    workers.work_on_all(["a"], journal, until=time.time() + 30, fill=True)
+    assert trained == [1, 2]
+
+
 def test_a_deadline_leaves_a_waiting_retry_that_would_not_end_before_it():
     tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0, 1), 4000, 2000, 2)
     study = optuna.create_study(storage=optuna.storages.InMemoryStorage())

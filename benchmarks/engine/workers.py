@@ -176,10 +176,14 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
     while True:
         for name, study, campaign in studies:
             work_on(name, study, campaign, deadline)
+        if not fill or deadline is None:
+            break
+        for _, study, campaign in studies:  # as in the wait below: a dead worker's trial first
+            recover(study, campaign, stale_after)
         # nothing left that ends before the deadline: with fill, one point that goes on from its checkpoint later
         # (not of protocol zoo, whose rl-zoo3 training keeps no checkpoint)
         fillable = [studied for studied in studies if studied[2].protocol != "zoo"]
-        if not (fill and deadline is not None and any(work_on(*studied, once=True) for studied in fillable)):
+        if not any(work_on(*studied, once=True) for studied in fillable):
             break
     delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
@@ -189,7 +193,7 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
         delay = min(2 * delay, WAIT_AT_MOST)
         for name, study, campaign in studies:
             recover(study, campaign, stale_after)
-            work_on(name, study, campaign, deadline)
+            work_on(name, study, campaign, None if fill and campaign.protocol != "zoo" else deadline)
 
 
 def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None,
