@@ -66,7 +66,8 @@ setup(
         ],
         # diagnostics: plots, t-SNE / PCA, rank correlations, TensorBoard logs
         "diagnostics": ["matplotlib", "scikit-learn", "scipy", "tensorboard"],
-        "docs": ["sphinx", "myst-parser", "sphinx-rtd-theme", "matplotlib", "scikit-learn"],
+        # the API pages import every documented module: rl_zoo.hyperparams_opt needs rl-zoo3 and Optuna
+        "docs": ["sphinx", "myst-parser", "sphinx-rtd-theme", "matplotlib", "scikit-learn", *ZOO],
     },
     license="MIT",
     classifiers=[

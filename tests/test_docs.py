@@ -9,6 +9,8 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 ROOT = pathlib.Path(__file__).parents[1]
 DOCS = ROOT / "docs"
 README_MAX_WORDS = 700
@@ -255,3 +257,80 @@ def test_the_off_policy_argument_tables_list_every_pevfa_argument_with_its_defau
                 expected[parameter.name] = shown(parameter.default)
     assert documented == expected
     assert table_rows("| `a` | `(64,)` | x |\n|---|---|---|\n") == {"`a`": ["`(64,)`", "x"]}
+
+
+def _canonical(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _installed_by(extras: list[str]) -> set[str]:
+    """The distributions ``pip install -e ".[extras]"`` installs: the package's requirements and those of the extras,
+    with their own requirements (what this environment's metadata says)."""
+    import importlib.metadata as md
+
+    from packaging.requirements import Requirement
+
+    seen, stack = set(), [("sb3-pevfa", tuple(extras))]
+    while stack:
+        name, wanted = stack.pop()
+        if (_canonical(name), wanted) in seen:
+            continue
+        seen.add((_canonical(name), wanted))
+        try:
+            requires = md.distribution(name).requires or []
+        except md.PackageNotFoundError:  # a requirement of another platform
+            continue
+        for line in requires:
+            requirement = Requirement(line)
+            marker = requirement.marker
+            if marker is None or any(marker.evaluate({"extra": extra}) for extra in (*wanted, "")):
+                stack.append((requirement.name, tuple(sorted(requirement.extras))))
+    return {name for name, _ in seen}
+
+
+def _documented_modules() -> str:
+    """The modules docs/api.md documents (an ``autoclass``'s module)."""
+    found = re.findall(r"^\.\. (auto\w+):: ([\w.]+)", (DOCS / "api.md").read_text(), flags=re.MULTILINE)
+    return " ".join(sorted({name if kind == "automodule" else name.rpartition(".")[0] for kind, name in found}))
+
+
+@pytest.mark.parametrize(
+    "page, line, imports",
+    [
+        ("README.md", r"pip install -e \.(?:\[([\w,]+)\])? && python examples/train_pevfa\.py", "examples/train_pevfa.py"),
+        ("README.md", r"The benchmarks .*?pip install -e \"\.\[([\w,]+)\]\"", "engine.commands engine.report"),
+        ("docs/install.md", r"pip install -e \"\.\[([\w,]+)\]\" && python -m sphinx", "docs/api.md"),
+    ],
+)
+def test_the_install_lines_bring_what_their_code_imports(page: str, line: str, imports: str):
+    """The main job's example, the benchmark scripts and the modules the API page documents import with only what
+    their install line installs: a subprocess where every module of another installed distribution is missing (this
+    environment holds the tests' extras too, so a plain import would not tell; optional imports stay optional)."""
+    import importlib.metadata as md
+
+    found = re.search(line, (ROOT / page).read_text())
+    assert found, f"no line {line!r} in {page}"
+    imports = _documented_modules() if imports == "docs/api.md" else imports
+    installed = _installed_by(found[1].split(",") if found[1] else [])
+    missing = sorted(module for module, dists in md.packages_distributions().items()
+                     if module.isidentifier() and not {_canonical(d) for d in dists} & installed)  # fmt: skip
+    assert "pytest" in missing and "sb3_pevfa" not in missing  # the test's own, and the package
+    code = (
+        "import importlib.abc, importlib.util, sys\n"
+        "missing = set(sys.argv[1].split(','))\n"
+        "class NotInstalled(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name.partition('.')[0] in missing:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+        "sys.meta_path.insert(0, NotInstalled())\n"
+        "sys.path.insert(0, 'benchmarks')\n"
+        "for target in sys.argv[2:]:\n"
+        "    if target.endswith('.py'):  # a script: its imports, not its main\n"
+        "        spec = importlib.util.spec_from_file_location('script', target)\n"
+        "        spec.loader.exec_module(importlib.util.module_from_spec(spec))\n"
+        "    else:\n"
+        "        __import__(target)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code, ",".join(missing), *imports.split()], cwd=ROOT,
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-1500:]

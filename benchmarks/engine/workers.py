@@ -257,7 +257,8 @@ def check_tasks(studies: list[tuple[optuna.Study, Campaign]]) -> None:
             problems += [f"  {study.study_name}: {problem}" for problem in unmakeable(campaign.protocol, [task])]
     if problems:
         raise SystemExit("These tasks cannot be trained on this machine, so no worker started (the benchmarks' "
-                         'dependencies: pip install -e ".[zoo,mujoco,box2d]"):\n' + "\n".join(problems))  # fmt: skip
+                         'dependencies: pip install -e ".[zoo,mujoco,box2d,diagnostics]"):\n'
+                         + "\n".join(problems))  # fmt: skip
 
 
 def run(
