@@ -1468,67 +1468,33 @@ def test_a_worker_under_a_deadline_takes_only_the_points_expected_to_end_before_
     assert len(study.get_trials()) == 12 and not [t for t in study.get_trials() if t.state != TrialState.COMPLETE]
 
 
-def test_with_fill_a_worker_takes_the_points_that_fit_first_then_the_others_one_at_a_time_in_order(tmp_path, monkeypatch):
-    """30 s left; the runs of campaigns z (protocol zoo), a and c take 100 s, b's 10 s. Without ``fill`` no point of
-    a; with it a's first (z's rl-zoo3 training keeps no checkpoint), one at a time: b's retry, enqueued meanwhile,
-    ends before the deadline and comes next; then a's other point, then c's."""
+def test_with_fill_a_worker_takes_the_points_in_the_campaigns_order_but_protocol_zoos_that_do_not_fit(tmp_path, monkeypatch):
+    """30 s left; the runs of campaigns z (protocol zoo) and a take 100 s, b's 10 s. Without ``fill`` no point of z
+    or a; with it a's, then b's, as without a deadline (a stop keeps their work), but none of z's (rl-zoo3's training
+    keeps no checkpoint)."""
     journal = str(tmp_path / "fill.journal")
-    grids = {"a": ("opr-e2e", (0, 1, 2), 100.0), "b": ("ppo", (0, 1), 10.0), "c": ("opr-e2e", (5, 6), 100.0)}
+    grids = {"a": ("opr-e2e", (0, 1, 2), 100.0), "b": ("ppo", (0, 1), 10.0)}
     for name, (variant, seeds, wall) in grids.items():
         tiny = definitions.Campaign("paper", (TASK,), (variant,), seeds, 4000, 2000, 2)
         study, _ = storage.open_study(name, storage.storage_of(name, journal), tiny)
         _completed(study, tiny, (TASK, variant, seeds[0]), wall)
-    b, b_campaign = storage.open_study("b", storage.storage_of("b", journal))  # its point of seed 1 stopped: not pending
-    distributions = {name: CategoricalDistribution(values) for name, values in b_campaign.search_space.items()}
-    b.add_trial(optuna.create_trial(state=TrialState.FAIL, params={"task": TASK, "variant": "ppo", "seed": 1},
-                                    distributions=distributions))  # fmt: skip
     zoo = definitions.Campaign("zoo", (TASK,), ("ppo",), (0,), 2048, 1024, 2, "benchmarks/hyperparams/learning.yml")
     storage.open_study("z", storage.storage_of("z", journal), zoo)
     trained = []
 
     def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
         trained.append((campaign_.protocol, variant, seed))
-        if len(trained) == 1:  # the stopped point of b enqueued again (as run recovers it) while a's trains
-            storage.enqueue(b, (TASK, "ppo", 1))
         wall = 10.0 if variant == "ppo" else 100.0  # as long as the complete runs: the estimates stay
         times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
                  "eval_wall_seconds": 0.1 * wall}  # fmt: skip
         return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
 
     monkeypatch.setattr(workers, "train", train)
-    workers.work_on_all(["z", "a", "c"], journal, until=time.time() + 30)
+    workers.work_on_all(["z", "a"], journal, until=time.time() + 30)
     assert trained == []
-    workers.work_on_all(["z", "a", "b", "c"], journal, until=time.time() + 30, fill=True)
-    assert [point[1:] for point in trained[1:]] == [("ppo", 1), ("opr-e2e", ({1, 2} - {trained[0][2]}).pop()),
-                                                    ("opr-e2e", 6)]  # fmt: skip
-    assert trained[0][:2] == ("paper", "opr-e2e") and trained[0][2] in (1, 2)
-
-
-def test_with_fill_a_dead_workers_trial_comes_before_the_points_left(tmp_path, monkeypatch):
-    """Campaign a's runs take 100 s, 30 s are left; its point of seed 1 runs in a worker that died: with ``fill`` the
-    worker retries it before it takes seed 2 (it recovers dead workers' trials as it does waiting at a grid's end)."""
-    tiny = definitions.Campaign("paper", (TASK,), ("opr-e2e",), (0, 1, 2), 4000, 2000, 2)
-    journal = str(tmp_path / "dead.journal")
-    study, _ = storage.open_study("a", storage.storage_of("a", journal), tiny)
-    _completed(study, tiny, (TASK, "opr-e2e", 0), 100.0)
-    gone = subprocess.Popen(["true"])
-    gone.wait()  # a worker of this machine that is gone, its heartbeat recent
-    attrs = {"worker": {"host": socket.gethostname(), "boot_id": storage.boot_id(), "pid": gone.pid},
-             "heartbeat": time.time()}  # fmt: skip
-    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
-    params = {"task": TASK, "variant": "opr-e2e", "seed": 1}
-    study.add_trial(optuna.create_trial(state=TrialState.RUNNING, params=params, distributions=distributions,
-                                        user_attrs=attrs))  # fmt: skip
-    trained = []
-
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
-        trained.append(seed)
-        times = {"cpu_seconds": 90.0, "eval_cpu_seconds": 10.0, "wall_seconds": 90.0, "eval_wall_seconds": 10.0}
-        return {"max_average_return": 1.0, "final_return": 1.0, "steps_per_cpu_second": 1.0, **times}
-
-    monkeypatch.setattr(workers, "train", train)
-    workers.work_on_all(["a"], journal, until=time.time() + 30, fill=True)
-    assert trained == [1, 2]
+    workers.work_on_all(["z", "a", "b"], journal, until=time.time() + 30, fill=True)
+    assert sorted(trained[:2]) == [("paper", "opr-e2e", 1), ("paper", "opr-e2e", 2)]
+    assert trained[2:] == [("paper", "ppo", 1)]
 
 
 def test_a_deadline_leaves_a_waiting_retry_that_would_not_end_before_it():

@@ -46,10 +46,9 @@ def campaign_main(argv: list[str] | None = None, description: str | None = None)
                              "still running at it stop (as by SIGTERM: a checkpoint at the next iteration boundary; "
                              f"the next run goes on from it): {UNTIL_FORMS}")  # fmt: skip
     parser.add_argument("--fill", action="store_true",
-                        help="run, work with --until: where nothing left is expected to end before the deadline, take "
-                             "a grid point that is not, one at a time, in the campaigns' order, protocol zoo apart (it "
-                             "stops at the deadline and the next run goes on from its checkpoint, on a machine that "
-                             "keeps them)")  # fmt: skip
+                        help="run, work with --until: take every grid point in the campaigns' order, as without a "
+                             "deadline (one running then stops with a checkpoint, and the next run goes on from it on "
+                             "a machine that keeps them), protocol zoo's only where they end before it")  # fmt: skip
     parser.add_argument("--retry-raised", action="store_true",
                         help="run: enqueue again the grid points whose training raised (once the cause is mended; "
                              "the status shows each one's exception)")  # fmt: skip

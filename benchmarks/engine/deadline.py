@@ -1,10 +1,10 @@
-"""A time by which the workers stop (``campaign.py run --until``), for a machine lent for a while (a batch job's
-time limit, a session): a worker takes a grid point only where the run's expected wall-clock time, less what its
-checkpoint has done, ends before the deadline (with ``--fill``, then the others too, one by one), and stops a trial
-still running at the deadline, as SIGTERM does (a checkpoint saved at its next iteration boundary, the trial marked
-interrupted, enqueued again by the next ``run`` and going on from that checkpoint where the machine keeps it).
-A run's expected time is the longer of the status's two estimates over the campaigns the workers were given: from
-complete runs alone, and with running trials' pace (:func:`~engine.results.run_times`,
+"""A time by which the workers stop (``campaign.py run --until``), for a machine lent for a while (a batch job's time
+limit, a session): a worker takes a grid point only where the run's expected wall-clock time, less what its
+checkpoint has done, ends before the deadline (with ``--fill`` every point, in the campaigns' order, protocol zoo's
+apart), and stops a trial still running at the deadline, as SIGTERM does (a checkpoint saved at its next iteration
+boundary, the trial marked interrupted, enqueued again by the next ``run`` and going on from that checkpoint where
+the machine keeps it). A run's expected time is the longer of the status's two estimates over the campaigns the
+workers were given: from complete runs alone, and with running trials' pace (:func:`~engine.results.run_times`,
 :func:`~engine.results.scaled_time`; a run's first steps go faster than its whole); a point with no estimate counts
 as long as the longest run known (of another campaign, protocol or algorithm), and is taken where no run is known."""
 

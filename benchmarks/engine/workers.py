@@ -161,9 +161,9 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
                 fill: bool = False) -> None:  # fmt: skip
     """Trials of the campaigns one after another, each campaign's grid before the next one's; then, while other
     workers run the last grid points, it waits, and runs any whose worker dies. With ``until`` (seconds since the
-    epoch) only grid points expected to end before it (a campaign's others left to the next one's), with ``fill``
-    then one that is not, in the campaigns' order, and the same again; at ``until`` it stops as by SIGTERM
-    (:mod:`~engine.deadline`)."""
+    epoch) only grid points expected to end before it (a campaign's others left to the next one's; with ``fill``
+    every point, as without it, protocol zoo's apart), and at ``until`` it stops as by SIGTERM, a training with a
+    checkpoint to go on from (:mod:`~engine.deadline`)."""
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     deadline = None if until is None else Deadline(until, names, storage)
@@ -173,18 +173,14 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     provenance()  # the code this process runs
     studies = [(name, *open_study(name, storage_of(name, storage))) for name in names]
-    while True:
-        for name, study, campaign in studies:
-            work_on(name, study, campaign, deadline)
-        if not fill or deadline is None:
-            break
-        for _, study, campaign in studies:  # as in the wait below: a dead worker's trial first
-            recover(study, campaign, stale_after)
-        # nothing left that ends before the deadline: with fill, one point that goes on from its checkpoint later
-        # (not of protocol zoo, whose rl-zoo3 training keeps no checkpoint)
-        fillable = [studied for studied in studies if studied[2].protocol != "zoo"]
-        if not any(work_on(*studied, once=True) for studied in fillable):
-            break
+
+    def limit(campaign: Campaign) -> Deadline | None:
+        """The deadline a campaign's points must end before: none with ``fill`` (a stop keeps the run's work), but
+        for protocol zoo, whose rl-zoo3 training keeps no checkpoint."""
+        return None if fill and campaign.protocol != "zoo" else deadline
+
+    for name, study, campaign in studies:
+        work_on(name, study, campaign, limit(campaign))
     delay = 0.5
     while any(running(study, campaign) for _, study, campaign in studies):
         if STOP.asked:  # asked as a training ended
@@ -193,13 +189,11 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
         delay = min(2 * delay, WAIT_AT_MOST)
         for name, study, campaign in studies:
             recover(study, campaign, stale_after)
-            work_on(name, study, campaign, None if fill and campaign.protocol != "zoo" else deadline)
+            work_on(name, study, campaign, limit(campaign))
 
 
-def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None,
-            once: bool = False) -> bool:  # fmt: skip
-    """The campaign's grid points, trial after trial (with a ``deadline``, only those expected to end before it;
-    ``once``: one trial at most); whether it ran one."""
+def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None) -> None:
+    """The campaign's grid points, trial after trial (with a ``deadline``, only those expected to end before it)."""
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
@@ -213,15 +207,13 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadli
             line = trial.state.name
         print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
 
-    rng, ran = random.Random(), False  # seeded from the OS: workers draw apart
-    while pending(study, campaign) and not (once and ran):
+    rng = random.Random()  # seeded from the OS: workers draw apart
+    while pending(study, campaign):
         if STOP.asked:  # asked as a training ended: its trial is complete, the worker stops before the next one
             raise KeyboardInterrupt
         if not draw(study, campaign, rng, deadline and deadline.fitting(name, campaign)):
-            break  # nothing left that ends before the deadline (or another worker took the last point)
+            return  # nothing left that ends before the deadline (or another worker took the last point)
         study.optimize(objective(campaign), n_trials=1, catch=(Exception,), callbacks=[announce], gc_after_trial=True)
-        ran = True
-    return ran
 
 
 def unmakeable(protocol: str, tasks: tuple[str, ...] | list[str]) -> list[str]:
