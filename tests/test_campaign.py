@@ -1010,6 +1010,54 @@ def test_a_stop_asked_as_a_training_ends_completes_its_trial_and_stops_the_worke
     assert trial.state == TrialState.COMPLETE and storage.pending(study, tiny) == 1
 
 
+def test_a_trial_says_whether_it_goes_on_from_the_checkpoint_an_earlier_trial_saved(tmp_path, monkeypatch, capsys,
+                                                                                     fresh_stop):  # fmt: skip
+    """A stopped trial keeps where its checkpoint is (the status shows it); the next trial of the grid point says in the
+    log that it goes on from it, or, on a machine without it, that the run starts over."""
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 8000, 2000, 1)
+    journal = str(tmp_path / "moved.journal")
+    study, _ = storage.open_study("moved", storage.storage_of("moved", journal), tiny)
+    folder = tiny.checkpoint_folder("moved", (TASK, "ppo", 0))
+    evaluate = training.evaluate_policy
+
+    def stopped_at_4000(model, *args, **kwargs):
+        if model.num_timesteps == 4000:
+            workers._stop()  # SIGTERM during the evaluation: a checkpoint as the next rollout starts
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(training, "evaluate_policy", stopped_at_4000)
+    with pytest.raises(KeyboardInterrupt):
+        workers.work_on("moved", study, tiny)
+    (stopped,) = study.get_trials()
+    assert stopped.user_attrs["checkpoint"] == {"steps": 4000, "host": socket.gethostname()}
+    assert results.trial_outcome(stopped) == (
+        f" (interrupted: stopped; checkpoint at 4,000 env steps on {socket.gethostname()}; "
+        f"last evaluation at 4,000 env steps, {stopped.user_attrs['progress']['cpu_s'] / 60:.1f} CPU-min)"
+    )
+    capsys.readouterr()
+    shutil.move(folder, tmp_path / "elsewhere")  # a new machine, or the cache cleared
+    fresh_stop.asked = False
+
+    def stopped_at_once(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(workers, "train", stopped_at_once)
+    assert storage.recover(study, tiny) == [0]  # as the next run does: the point enqueued again
+    with pytest.raises(KeyboardInterrupt):
+        workers.work_on("moved", study, tiny)
+    assert capsys.readouterr().out.splitlines()[0] == (
+        f"moved #1 {TASK} ppo seed 0: trial #0 saved a checkpoint at 4,000 env steps on {socket.gethostname()}, "
+        f"which is not in {folder}: the run starts over"
+    )
+    shutil.move(tmp_path / "elsewhere", folder)
+    assert storage.recover(study, tiny) == [1]
+    with pytest.raises(KeyboardInterrupt):
+        workers.work_on("moved", study, tiny)
+    assert capsys.readouterr().out.splitlines()[0] == (
+        f"moved #2 {TASK} ppo seed 0: goes on from its checkpoint at 4,000 env steps"
+    )
+
+
 def _refused(main, capsys, *args: str) -> str:
     """The usage error a command line ends with (no traceback)."""
     with pytest.raises(SystemExit) as stopped:

@@ -181,9 +181,9 @@ def status_of(name: str, storage: str | None) -> None:
 def trial_outcome(trial: Any, database: bool = False) -> str:
     """What the status adds to a trial's state: its max average return, a running one's progress (env steps and
     training CPU time at its last evaluation), or why a failed one stopped: interrupted (the worker was stopped or
-    died, and the grid point is tried again; where, if it reached an evaluation), its training raised (with the
-    exception), or, without a reason kept, a dead worker that Optuna's heartbeat failed (a ``database``) or an unknown
-    one."""
+    died, and the grid point is tried again; the checkpoint it saved and its last evaluation, if any), its training
+    raised (with the exception), or, without a reason kept, a dead worker that Optuna's heartbeat failed (a
+    ``database``) or an unknown one."""
     if trial.value is not None:
         return f" (max average return {trial.value:.0f})"
     progress = trial.user_attrs.get("progress") or {}
@@ -196,8 +196,11 @@ def trial_outcome(trial: Any, database: bool = False) -> str:
         return " (a duplicate)" if held is None else f" (a duplicate of #{held})"
     if trial.state != TrialState.FAIL:
         return ""
+    checkpoint = trial.user_attrs.get("checkpoint")
+    kept = [f"checkpoint at {checkpoint['steps']:,} env steps on {checkpoint['host']}"] if checkpoint else []
+    where = "".join(f"; {part}" for part in [*kept, at] if part)
     if trial.user_attrs.get("interrupted"):
-        return f" (interrupted: {trial.user_attrs['interrupted']}{'; ' + at if at else ''})"
+        return f" (interrupted: {trial.user_attrs['interrupted']}{where})"
     if "error" in trial.user_attrs:
         return f" (raised {trial.user_attrs['error']})"
-    return f" (interrupted: worker gone{'; ' + at if at else ''})" if database else " (failed: no reason kept, tried again)"
+    return f" (interrupted: worker gone{where})" if database else " (failed: no reason kept, tried again)"

@@ -152,6 +152,8 @@ class CurveCallback(BaseCallback):
             with self.apart():
                 save_checkpoint(self.checkpoint, self.model, self.state(), self.diagnostic)
             self.saved_at = self.num_timesteps
+            if self.trial is not None:  # a later trial of the grid point on another machine says what it misses
+                self.trial.set_user_attr("checkpoint", {"steps": self.num_timesteps, "host": socket.gethostname()})
             if self.checkpoint_freq:
                 self.next_checkpoint = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
         if STOP.asked and STOP.deferrable:
@@ -202,15 +204,22 @@ def checkpoint_file(folder: pathlib.Path, state: dict[str, Any], key: str) -> pa
     return folder / state.get("files", UNNAMED_FILES)[key]
 
 
-def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
-    """The model and state saved in ``folder``, or None where there is none or its files do not belong together (or
-    one is missing). A diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
+def saved_state(folder: pathlib.Path | None, protocol: str, variant: str) -> dict[str, Any] | None:
+    """The state of the checkpoint in ``folder`` (a grid point's of ``protocol`` and ``variant``) where each file it
+    needs is there, else None."""
     if folder is None or not (folder / "state.json").exists():
         return None
     state = json.loads((folder / "state.json").read_text())
     needed = ["model"] + ["history"] * (VARIANTS[protocol][variant] is not None)
     needed += ["replay_buffer"] * (protocol in OFF_POLICY) + ["diagnostic"] * (variant in LOCAL_GENERALIZATION)
-    if not all(checkpoint_file(folder, state, key).exists() for key in needed):
+    return state if all(checkpoint_file(folder, state, key).exists() for key in needed) else None
+
+
+def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together (or
+    one is missing). A diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
+    state = saved_state(folder, protocol, variant)
+    if state is None:
         return None
     if variant in LOCAL_GENERALIZATION:
         state["diagnostic"] = th.load(checkpoint_file(folder, state, "diagnostic"))

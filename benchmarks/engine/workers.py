@@ -8,6 +8,7 @@ import datetime
 import importlib
 import logging
 import os
+import pathlib
 import random
 import signal
 import socket
@@ -36,7 +37,7 @@ from .storage import (
     running,
     storage_of,
 )
-from .training import STOP, provenance, train
+from .training import STOP, provenance, saved_state, train
 
 #: The command line of a worker process (``storage`` knows a live worker by it)
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
@@ -72,6 +73,9 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
             folder = campaign.checkpoint_folder(trial.study.study_name, point)
+            news = checkpoint_news(trial, point, folder, campaign.protocol)
+            if news:
+                print(news, flush=True)
             # a stop: taken at the training's next iteration boundary, or, once it is complete, after it is stored
             # (rl-zoo3's training of protocol zoo, a process of its own without checkpoints, stops at once)
             with STOP.deferred(campaign.protocol != "zoo"):
@@ -89,6 +93,25 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
         return result["max_average_return"]
 
     return run_trial
+
+
+def checkpoint_news(trial: optuna.Trial, point: tuple[str, str, int], folder: pathlib.Path, protocol: str) -> str:
+    """What the log says as ``trial`` starts its grid ``point``: the checkpoint it goes on from, or, where an earlier
+    trial of the point saved one that ``folder`` lacks (another machine, a cleared cache), that the run starts over;
+    else nothing."""
+    task, variant, seed = point
+    head = f"{trial.study.study_name} #{trial.number} {task} {variant} seed {seed}"
+    state = saved_state(folder, protocol, variant)
+    if state is not None:
+        return f"{head}: goes on from its checkpoint at {state['timesteps']:,} env steps"
+    saved = [t for t in trial.study.get_trials(deepcopy=False)
+             if t.number != trial.number and grid_point(t) == point and "checkpoint" in t.user_attrs]  # fmt: skip
+    if not saved:
+        return ""
+    last = max(saved, key=lambda t: t.number)
+    checkpoint = last.user_attrs["checkpoint"]
+    return (f"{head}: trial #{last.number} saved a checkpoint at {checkpoint['steps']:,} env steps on "
+            f"{checkpoint['host']}, which is not in {folder}: the run starts over")  # fmt: skip
 
 
 def _yields(trial: FrozenTrial, other: FrozenTrial) -> bool:
