@@ -2,6 +2,7 @@
 journal storage, a killed worker's trial retried exactly once, a resume from the journal and the report from the
 storage alone."""
 
+import contextlib
 import datetime
 import functools
 import json
@@ -130,7 +131,8 @@ def test_a_journal_of_the_old_layout_finishes_its_grid_and_reports_both_runs(tmp
     assert trials[0].user_attrs == old.user_attrs and trials[0].value == old.value  # kept as the old code stored it
     new = trials[1]
     assert new.user_attrs["curve"]["steps"] == [2000, 4000] and new.value == new.user_attrs["max_average_return"]
-    assert set(new.user_attrs) == set(old.user_attrs)  # the attributes a trial stores, under the same keys
+    assert set(new.user_attrs) - set(old.user_attrs) == {"checkpoint"}  # the same keys, and where its checkpoint is
+    assert set(old.user_attrs) <= set(new.user_attrs)
     assert set(new.user_attrs["worker"]) == set(old.user_attrs["worker"])
     assert set(new.user_attrs["versions"]) == set(old.user_attrs["versions"])
     shown = _campaign("status", "--campaign", "old-layout", "--storage", str(journal))
@@ -352,7 +354,7 @@ def test_retries_and_draws_train_every_grid_point_once_without_duplicates(tmp_pa
     study, _ = storage.open_study("draws", storage.storage_of("draws", journal), tiny)
     trained = []
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         trained.append(seed)
         if len(trained) == 3:  # the third training is stopped: the next run enqueues it again
             raise KeyboardInterrupt
@@ -388,7 +390,7 @@ def test_a_worker_with_nothing_left_waits_for_running_trials_and_runs_one_whose_
     assert storage.pending(study, tiny) == 0 and storage.running(study, tiny) == 1
     trained = []
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         trained.append(seed)
         keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
         return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
@@ -998,7 +1000,7 @@ def test_a_stop_asked_as_a_training_ends_completes_its_trial_and_stops_the_worke
     journal = str(tmp_path / "end.journal")
     study, _ = storage.open_study("end", storage.storage_of("end", journal), tiny)
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         workers._stop()  # SIGTERM as the training ends (its last iteration, or after it): the run is stored first
         keys = ("final_return", "cpu_seconds", "eval_cpu_seconds", "wall_seconds", "steps_per_cpu_second")
         return {"max_average_return": 1.0, **dict.fromkeys(keys, 1.0)}
@@ -1013,48 +1015,68 @@ def test_a_stop_asked_as_a_training_ends_completes_its_trial_and_stops_the_worke
 def test_a_trial_says_whether_it_goes_on_from_the_checkpoint_an_earlier_trial_saved(tmp_path, monkeypatch, capsys,
                                                                                      fresh_stop):  # fmt: skip
     """A stopped trial keeps where its checkpoint is (the status shows it); the next trial of the grid point says in the
-    log that it goes on from it, or, on a machine without it, that the run starts over."""
+    log that it goes on from a checkpoint, or, on a machine without the one saved last, that the run starts over."""
     tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 8000, 2000, 1)
     journal = str(tmp_path / "moved.journal")
     study, _ = storage.open_study("moved", storage.storage_of("moved", journal), tiny)
-    folder = tiny.checkpoint_folder("moved", (TASK, "ppo", 0))
-    evaluate = training.evaluate_policy
+    folder, host = tiny.checkpoint_folder("moved", (TASK, "ppo", 0)), socket.gethostname()
+    evaluate, stop_at = training.evaluate_policy, [4000, 2000, 2000]
 
-    def stopped_at_4000(model, *args, **kwargs):
-        if model.num_timesteps == 4000:
+    def stopped(model, *args, **kwargs):
+        if stop_at and model.num_timesteps == stop_at[0]:
+            stop_at.pop(0)
             workers._stop()  # SIGTERM during the evaluation: a checkpoint as the next rollout starts
         return evaluate(model, *args, **kwargs)
 
-    monkeypatch.setattr(training, "evaluate_policy", stopped_at_4000)
-    with pytest.raises(KeyboardInterrupt):
-        workers.work_on("moved", study, tiny)
-    (stopped,) = study.get_trials()
-    assert stopped.user_attrs["checkpoint"] == {"steps": 4000, "host": socket.gethostname()}
-    assert results.trial_outcome(stopped) == (
-        f" (interrupted: stopped; checkpoint at 4,000 env steps on {socket.gethostname()}; "
-        f"last evaluation at 4,000 env steps, {stopped.user_attrs['progress']['cpu_s'] / 60:.1f} CPU-min)"
-    )
-    capsys.readouterr()
-    shutil.move(folder, tmp_path / "elsewhere")  # a new machine, or the cache cleared
-    fresh_stop.asked = False
+    def next_trial() -> str:
+        fresh_stop.asked = False  # the next run's worker
+        with contextlib.suppress(KeyboardInterrupt):
+            workers.work_on("moved", study, tiny)
+        storage.recover(study, tiny)  # as the next run does: a stopped point enqueued again
+        return capsys.readouterr().out
 
-    def stopped_at_once(*args, **kwargs):
+    monkeypatch.setattr(training, "evaluate_policy", stopped)
+    monkeypatch.setattr(workers, "train", functools.partial(training.train, checkpoint_freq=4000))
+    assert "checkpoint" not in next_trial()  # none before
+    assert study.trials[0].user_attrs["checkpoint"] == {"steps": 4000, "host": host}
+    assert results.trial_outcome(study.trials[0]) == (
+        f" (interrupted: stopped; checkpoint at 4,000 env steps on {host}; "
+        f"last evaluation at 4,000 env steps, {study.trials[0].user_attrs['progress']['cpu_s'] / 60:.1f} CPU-min)"
+    )
+    shutil.move(folder, tmp_path / "elsewhere")  # another machine, or the cache cleared
+    assert next_trial().splitlines()[0] == (
+        f"moved #1 {TASK} ppo seed 0: trial #0 saved a checkpoint at 4,000 env steps on {host}; "
+        f"none to go on from in {folder}: the run starts over"
+    )
+    assert study.trials[1].user_attrs["checkpoint"] == {"steps": 2000, "host": host}  # its own
+    shutil.rmtree(folder)
+    assert next_trial().splitlines()[0] == (
+        f"moved #2 {TASK} ppo seed 0: trial #1 saved a checkpoint at 2,000 env steps on {host}; "
+        f"none to go on from in {folder}: the run starts over"
+    )  # the last one saved
+    assert next_trial().splitlines()[0] == f"moved #3 {TASK} ppo seed 0: goes on from its checkpoint at 2,000 env steps"
+    complete = study.trials[3]  # after a checkpoint at 4,000 env steps
+    assert complete.state == TrialState.COMPLETE and complete.user_attrs["resumed_from"] == 2000
+    assert complete.user_attrs["checkpoint"] is None and not folder.exists()
+
+
+def test_a_retry_that_copied_its_trials_attributes_claims_no_checkpoint_of_its_own(tmp_path, monkeypatch):
+    tiny = definitions.Campaign("paper", (TASK,), ("ppo",), (0,), 4000, 2000, 2)
+    study, _ = storage.open_study("copied", storage.storage_of("copied", str(tmp_path / "copied.journal")), tiny)
+    distributions = {name: CategoricalDistribution(values) for name, values in tiny.search_space.items()}
+    study.add_trial(optuna.create_trial(  # as Optuna's heartbeat enqueues a dead worker's trial on a database
+        state=TrialState.WAITING, params={"task": TASK, "variant": "ppo", "seed": 0}, distributions=distributions,
+        user_attrs={"checkpoint": {"steps": 2000, "host": "gone"}}, system_attrs={"failed_trial": 0, "retry_history": [0]},
+    ))  # fmt: skip
+
+    def stopped(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(workers, "train", stopped_at_once)
-    assert storage.recover(study, tiny) == [0]  # as the next run does: the point enqueued again
+    monkeypatch.setattr(workers, "train", stopped)
     with pytest.raises(KeyboardInterrupt):
-        workers.work_on("moved", study, tiny)
-    assert capsys.readouterr().out.splitlines()[0] == (
-        f"moved #1 {TASK} ppo seed 0: trial #0 saved a checkpoint at 4,000 env steps on {socket.gethostname()}, "
-        f"which is not in {folder}: the run starts over"
-    )
-    shutil.move(tmp_path / "elsewhere", folder)
-    assert storage.recover(study, tiny) == [1]
-    with pytest.raises(KeyboardInterrupt):
-        workers.work_on("moved", study, tiny)
-    assert capsys.readouterr().out.splitlines()[0] == (
-        f"moved #2 {TASK} ppo seed 0: goes on from its checkpoint at 4,000 env steps"
+        study.optimize(workers.objective(tiny), n_trials=1)
+    assert study.trials[0].user_attrs["checkpoint"] is None and results.trial_outcome(study.trials[0]) == (
+        " (interrupted: stopped)"
     )
 
 
@@ -1499,7 +1521,7 @@ def test_a_worker_under_a_deadline_takes_only_the_points_expected_to_end_before_
     (folder / "state.json").write_text(json.dumps({"timesteps": 2000, "wall": 60.0, "eval_wall": 10.0}))
     trained = []
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         trained.append((task, variant, seed))
         wall = 200.0 if variant == "opr-e2e" else 100.0  # as long as the complete runs: the estimates stay
         times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
@@ -1530,7 +1552,7 @@ def test_with_fill_a_worker_takes_the_points_in_the_campaigns_order_but_protocol
     storage.open_study("z", storage.storage_of("z", journal), zoo)
     trained = []
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         trained.append((campaign_.protocol, variant, seed))
         wall = 10.0 if variant == "ppo" else 100.0  # as long as the complete runs: the estimates stay
         times = {"cpu_seconds": 0.9 * wall, "eval_cpu_seconds": 0.1 * wall, "wall_seconds": 0.9 * wall,
@@ -1565,7 +1587,7 @@ def test_a_trial_running_at_the_deadline_stops_as_by_sigterm(tmp_path, monkeypat
     journal = str(tmp_path / "late.journal")
     study, _ = storage.open_study("late", storage.storage_of("late", journal), tiny)
 
-    def train(campaign_, task, variant, seed, trial=None, checkpoint=None):
+    def train(campaign_, task, variant, seed, trial=None, checkpoint=None, started=None):
         end = time.monotonic() + 60
         while time.monotonic() < end:  # the deadline's alarm asks the stop, which the next iteration takes
             time.sleep(0.05)

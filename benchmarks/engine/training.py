@@ -204,22 +204,15 @@ def checkpoint_file(folder: pathlib.Path, state: dict[str, Any], key: str) -> pa
     return folder / state.get("files", UNNAMED_FILES)[key]
 
 
-def saved_state(folder: pathlib.Path | None, protocol: str, variant: str) -> dict[str, Any] | None:
-    """The state of the checkpoint in ``folder`` (a grid point's of ``protocol`` and ``variant``) where each file it
-    needs is there, else None."""
+def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
+    """The model and state saved in ``folder``, or None where there is none or its files do not belong together (or
+    one is missing). A diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
     if folder is None or not (folder / "state.json").exists():
         return None
     state = json.loads((folder / "state.json").read_text())
     needed = ["model"] + ["history"] * (VARIANTS[protocol][variant] is not None)
     needed += ["replay_buffer"] * (protocol in OFF_POLICY) + ["diagnostic"] * (variant in LOCAL_GENERALIZATION)
-    return state if all(checkpoint_file(folder, state, key).exists() for key in needed) else None
-
-
-def load_checkpoint(folder: pathlib.Path | None, protocol: str, variant: str, env) -> tuple[PPO, dict[str, Any]] | None:
-    """The model and state saved in ``folder``, or None where there is none or its files do not belong together (or
-    one is missing). A diagnostic variant's state holds its diagnostic's under ``"diagnostic"``."""
-    state = saved_state(folder, protocol, variant)
-    if state is None:
+    if not all(checkpoint_file(folder, state, key).exists() for key in needed):
         return None
     if variant in LOCAL_GENERALIZATION:
         state["diagnostic"] = th.load(checkpoint_file(folder, state, "diagnostic"))
@@ -256,11 +249,13 @@ def make_model(protocol: str, variant: str, env, seed: int) -> PPO:
 
 
 def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.Trial | None = None,
-          checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ) -> dict[str, Any]:  # fmt: skip
+          checkpoint: pathlib.Path | None = None, checkpoint_freq: int = CHECKPOINT_FREQ,
+          started: Callable[[int], None] | None = None) -> dict[str, Any]:  # fmt: skip
     """Train one grid point with evaluations; returns what the trial stores. With a ``checkpoint`` folder, the run
-    goes on from the checkpoint there (if any; its env starts a new episode) and saves one every ``checkpoint_freq``
-    env steps; the folder is removed when the run is complete. A run with a diagnostic (``LOCAL_GENERALIZATION``)
-    goes on with its conventional critic and its series (what was not scored when the checkpoint was taken is not)."""
+    goes on from the checkpoint there (if any; its env starts a new episode; ``started`` is told its env steps, 0 for
+    none) and saves one every ``checkpoint_freq`` env steps; the folder is removed when the run is complete. A run
+    with a diagnostic (``LOCAL_GENERALIZATION``) goes on with its conventional critic and its series (what was not
+    scored when the checkpoint was taken is not)."""
     if campaign.protocol == "zoo":
         return train_through_the_zoo(campaign, task, variant, seed, trial)
     th.set_num_threads(1)
@@ -271,6 +266,8 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
         warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
         resumed = load_checkpoint(checkpoint, campaign.protocol, variant, env)
         model, state = resumed or (make_model(campaign.protocol, variant, env, seed), {})
+    if started is not None:
+        started(state.get("timesteps", 0))
     deterministic = campaign.protocol not in STOCHASTIC_EVALUATION
     diagnostic = None
     if variant in LOCAL_GENERALIZATION:
@@ -288,6 +285,8 @@ def train(campaign: Campaign, task: str, variant: str, seed: int, trial: optuna.
     curve = callback.curve
     if checkpoint is not None:
         remove_checkpoint(checkpoint)
+        if trial is not None:  # none left to go on from
+            trial.set_user_attr("checkpoint", None)
     env.close()
     eval_env.close()
     return {

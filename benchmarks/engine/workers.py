@@ -37,7 +37,7 @@ from .storage import (
     running,
     storage_of,
 )
-from .training import STOP, provenance, saved_state, train
+from .training import STOP, provenance, train
 
 #: The command line of a worker process (``storage`` knows a live worker by it)
 SCRIPT = ROOT / "benchmarks" / "campaign.py"
@@ -60,26 +60,31 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
     def run_trial(trial: optuna.Trial) -> float:
         try:
             trial.set_user_attr("interrupted", "")
+            trial.set_user_attr("checkpoint", None)  # none saved yet (a database's retry copies its trial's)
             task = trial.suggest_categorical("task", list(campaign.tasks))
             variant = trial.suggest_categorical("variant", list(campaign.variants))
             seed = trial.suggest_categorical("seed", list(campaign.seeds))
             point = (task, variant, seed)
             this = trial.study._storage.get_trial(trial._trial_id)
-            taken = [t for t in trial.study.get_trials(deepcopy=False)
-                     if t.number != trial.number and grid_point(t) == point and _yields(this, t)]  # fmt: skip
+            others = [t for t in trial.study.get_trials(deepcopy=False) if t.number != trial.number and grid_point(t) == point]
+            taken = [t for t in others if _yields(this, t)]
             if taken:  # the grid point is done, or another worker took it at the same moment
                 trial.set_user_attr("duplicate_of", taken[0].number)
                 raise optuna.TrialPruned()
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
             folder = campaign.checkpoint_folder(trial.study.study_name, point)
-            news = checkpoint_news(trial, point, folder, campaign.protocol)
-            if news:
-                print(news, flush=True)
+            head = f"{trial.study.study_name} #{trial.number} {task} {variant} seed {seed}"
+
+            def started(steps: int) -> None:
+                news = checkpoint_news(others, steps, folder)
+                if news:
+                    print(f"{head}: {news}", flush=True)
+
             # a stop: taken at the training's next iteration boundary, or, once it is complete, after it is stored
             # (rl-zoo3's training of protocol zoo, a process of its own without checkpoints, stops at once)
             with STOP.deferred(campaign.protocol != "zoo"):
-                result = train(campaign, task, variant, seed, trial, checkpoint=folder)
+                result = train(campaign, task, variant, seed, trial, checkpoint=folder, started=started)
                 for key, value in result.items():
                     trial.set_user_attr(key, value)
         except (KeyboardInterrupt, SystemExit):
@@ -95,23 +100,19 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
     return run_trial
 
 
-def checkpoint_news(trial: optuna.Trial, point: tuple[str, str, int], folder: pathlib.Path, protocol: str) -> str:
-    """What the log says as ``trial`` starts its grid ``point``: the checkpoint it goes on from, or, where an earlier
-    trial of the point saved one that ``folder`` lacks (another machine, a cleared cache), that the run starts over;
-    else nothing."""
-    task, variant, seed = point
-    head = f"{trial.study.study_name} #{trial.number} {task} {variant} seed {seed}"
-    state = saved_state(folder, protocol, variant)
-    if state is not None:
-        return f"{head}: goes on from its checkpoint at {state['timesteps']:,} env steps"
-    saved = [t for t in trial.study.get_trials(deepcopy=False)
-             if t.number != trial.number and grid_point(t) == point and "checkpoint" in t.user_attrs]  # fmt: skip
+def checkpoint_news(others: list[FrozenTrial], steps: int, folder: pathlib.Path) -> str:
+    """What the log says as a trial starts its grid point, of whose ``others`` trials: the checkpoint it goes on from
+    (``steps``), or, where none is (0) and the last of them to save one kept it, that it is not in ``folder`` (another
+    machine, a cleared cache, a broken one) and the run starts over; else nothing."""
+    if steps:
+        return f"goes on from its checkpoint at {steps:,} env steps"
+    saved = [t for t in others if t.user_attrs.get("checkpoint")]
     if not saved:
         return ""
     last = max(saved, key=lambda t: t.number)
     checkpoint = last.user_attrs["checkpoint"]
-    return (f"{head}: trial #{last.number} saved a checkpoint at {checkpoint['steps']:,} env steps on "
-            f"{checkpoint['host']}, which is not in {folder}: the run starts over")  # fmt: skip
+    return (f"trial #{last.number} saved a checkpoint at {checkpoint['steps']:,} env steps on {checkpoint['host']}; "
+            f"none to go on from in {folder}: the run starts over")  # fmt: skip
 
 
 def _yields(trial: FrozenTrial, other: FrozenTrial) -> bool:
