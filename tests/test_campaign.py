@@ -1413,13 +1413,20 @@ def test_a_checkpoint_is_one_set_of_files_a_kill_while_saving_leaves_the_previou
     assert training.load_checkpoint(folder, "sac", "opr", make_vec_env(TASK)) is None
 
 
-def test_the_off_policy_local_generalization_diagnostic_in_a_trial(monkeypatch):
+def test_the_off_policy_local_generalization_diagnostic_in_a_trial_and_the_report(tmp_path, monkeypatch):
     use_a_tiny_sac(monkeypatch, learning_starts=200, snapshot_freq=300)
     tiny = definitions.Campaign("sac", (TASK,), ("opr+local-generalization",), (0,), 1500, 500, 2)
-    series = training.train(tiny, TASK, "opr+local-generalization", 0)["local_generalization"]
+    run = {**training.train(tiny, TASK, "opr+local-generalization", 0), "seed": 0}
+    series = run["local_generalization"]
     assert series["policy_id"] == [0.0, 1.0, 2.0, 3.0, 4.0]  # a window per snapshot (300 gradient steps from the 201st step)
     assert series["timesteps"][-1] == 1500.0 and min(series["n_states"]) > 0
     assert all(min(series[key]) > 0 for key in ("pevfa_before", "vfa_before", "pevfa_after", "vfa_after"))
+    # the report scores windows between snapshots, not an iteration's rollout
+    collected = ({TASK: {"opr+local-generalization": [run]}}, {}, [], [tiny])
+    text = engine.report.report(["q"], None, "sac", 2, tmp_path / "curves.png", cache={(("q",), None): collected})
+    assert f"mean squared error on {engine.report.OFF_POLICY_SCORED}, PeVFA" in text and "Monte-Carlo" not in text
+    assert "| task | variant | runs | windows |" in text and f"| {TASK} | opr+local-generalization | 1 | " in text
+    assert (tmp_path / "local_generalization.png").stat().st_size > 10_000
 
 
 def whole_then_stopped(campaign: definitions.Campaign, stop_at: int, checkpoint_freq: int, tmp_path: pathlib.Path,

@@ -64,8 +64,9 @@ def _interpolated(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np
     return np.interp(grid, steps[finite], values[finite], left=np.nan, right=np.nan)
 
 
-def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:
-    """One panel per task with diagnostic runs: PeVFA's error / the conventional critic's over training."""
+def plot_local_generalization(runs: Runs, png: pathlib.Path, off_policy: bool = False) -> None:
+    """One panel per task with diagnostic runs: PeVFA's error / the conventional critic's over training (before and
+    after the iteration's critic update; ``off_policy``: the window's updates)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,7 +78,8 @@ def plot_local_generalization(runs: Runs, png: pathlib.Path) -> None:
     figure, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
     for ax, (task, variant, series) in zip(axes[0], panels):
         curves = local_generalization_curves(series)
-        ax.plot(curves["steps"] / 1e6, curves["before"], label="before the critic update")
+        before = "before the window's updates" if off_policy else "before the critic update"
+        ax.plot(curves["steps"] / 1e6, curves["before"], label=before)
         ax.plot(curves["steps"] / 1e6, curves["after"], "--", label="after")
         ax.axhline(1.0, color="grey", linewidth=0.8)
         ax.set(yscale="log", xlabel="env steps (M)", title=f"{task}, {variant} ({len(series)} runs)")

@@ -8,7 +8,7 @@ import numpy as np
 
 from sb3_pevfa.protocols import AUTHORS_DEVIATIONS, PAPER_DEVIATIONS
 
-from .definitions import Campaign, is_diagnostic
+from .definitions import OFF_POLICY, Campaign, is_diagnostic
 from .figures import plot, plot_beside, plot_local_generalization
 from .results import Runs, collect, expected_duration
 from .tables import (
@@ -31,6 +31,10 @@ from .tables import (
 
 #: Protocols whose reports stand beside the paper's Table 1 and its target: what each one's deviations are from
 PUBLISHED = {"paper": ("the paper", PAPER_DEVIATIONS), "authors": ("the authors' code", AUTHORS_DEVIATIONS)}
+#: What the local-generalization diagnostic scores in the off-policy protocols (:class:`QLocalGeneralizationCallback`)
+OFF_POLICY_SCORED = ("the discounted returns (SAC's with its entropy bonus) of the transitions each new snapshot's "
+                     "actor collected until the next snapshot (a window), by Q(s, a) before and after the critics "
+                     "learn from them")  # fmt: skip
 #: How the report names a protocol where its name alone would read oddly
 PROTOCOL_NAMES = {"authors": "authors' protocol"}
 
@@ -194,12 +198,14 @@ def report(
         speed(runs, baseline),
         [expected_duration(runs, progress, campaigns, workers)],
     ]  # fmt: skip
-    diagnostic = local_generalization(runs)
+    off_policy = bool(protocols & set(OFF_POLICY))
+    diagnostic = local_generalization(runs, "windows" if off_policy else "iterations")
     if diagnostic:
-        sections += [["Local generalization (the paper's Fig. 3b / 8): mean squared error on each new policy's "
-                      "Monte-Carlo returns, PeVFA against a conventional critic trained beside it (over training: "
-                      "local_generalization.png); its runs are in the first table only (the extra critic costs time):"],
-                     diagnostic]  # fmt: skip
+        scored = (OFF_POLICY_SCORED if off_policy else
+                  "each new policy's Monte-Carlo returns, before and after the iteration's critic update")  # fmt: skip
+        sections += [[f"Local generalization (the paper's Fig. 3b / 8): mean squared error on {scored}, PeVFA "
+                      "against a conventional critic trained beside it (over training: local_generalization.png); its "
+                      "runs are in the first table only (the extra critic costs time):"], diagnostic]  # fmt: skip
     signals = training_signals(runs)
     if signals:
         sections += [["Training signals from SB3's logs (mean over each run's last third of iterations, then over "
@@ -216,5 +222,5 @@ def report(
     if png is not None:
         plot(runs, png, normalized)
         if diagnostic:
-            plot_local_generalization(runs, png.with_name("local_generalization.png"))
+            plot_local_generalization(runs, png.with_name("local_generalization.png"), off_policy)
     return "\n".join(lines).rstrip() + "\n"

@@ -360,11 +360,12 @@ def diagnosed(variant_runs: list[dict[str, Any]]) -> list[dict[str, list[float]]
     return [r["local_generalization"] for r in variant_runs if r.get("local_generalization")]
 
 
-def local_generalization(runs: Runs) -> list[str]:
+def local_generalization(runs: Runs, unit: str = "iterations") -> list[str]:
     """Per task and variant with the diagnostic: the PeVFA's and the conventional critic's errors against the
-    Monte-Carlo returns of each new policy before and after the iteration's critic update (paper Fig. 3b / 8), over
-    the runs of ``diagnosed``; per run, its seed, its best return and its median ratio before the update."""
-    lines = ["| task | variant | runs | iterations | error before update, PeVFA / VFA (median ratio) | PeVFA closer before "
+    Monte-Carlo returns of each new policy before and after the iteration's critic update (paper Fig. 3b / 8; off
+    policy: per window between two snapshots, ``unit`` "windows"), over the runs of ``diagnosed``; per run, its seed,
+    its best return and its median ratio before the update."""
+    lines = [f"| task | variant | runs | {unit} | error before update, PeVFA / VFA (median ratio) | PeVFA closer before "
              "| error after update, PeVFA / VFA | per run: seed, best return (median ratio before) |",
              "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for task, by_variant in runs.items():
