@@ -11,7 +11,7 @@ with open("README.md") as file_handler:
 # rl-zoo3's enjoy imports `requests`, its plots need `seaborn` and its Optuna report `pandas`, undeclared by it;
 # PostgreSQL storages of Optuna need psycopg (SQLAlchemy 2 default driver); plotly draws Optuna's interactive plots
 # of a study (examples/optuna_search.py).
-ZOO = ["rl_zoo3>=2.4.0", "sb3-contrib>=2.4.0", "optuna>=4.0", "requests", "seaborn", "pandas", "psycopg[binary]", "plotly"]
+ZOO = ["rl_zoo3>=2.4.0", "optuna>=4.0", "requests", "seaborn", "pandas", "psycopg[binary]", "plotly"]
 
 setup(
     name="sb3-pevfa",
