@@ -74,7 +74,7 @@ def objective(campaign: Campaign) -> Callable[[optuna.Trial], float]:
             trial.set_user_attr("worker", {"host": socket.gethostname(), "boot_id": boot_id(), "pid": os.getpid()})
             trial.set_user_attr("heartbeat", time.time())
             folder = campaign.checkpoint_folder(trial.study.study_name, point)
-            head = f"{trial.study.study_name} #{trial.number} {task} {variant} seed {seed}"
+            head = trial_label(trial.study.study_name, trial.number, point)
 
             def started(steps: int) -> None:
                 news = checkpoint_news(others, steps, folder)
@@ -216,12 +216,18 @@ def work_on_all(names: list[str], storage: str | None, stale_after: float = 1800
             work_on(name, study, campaign, limit(campaign))
 
 
+def trial_label(name: str, number: int, point: tuple) -> str:
+    """How the log names a trial: ``<campaign> #<trial> <task> <variant> seed <seed>``."""
+    task, variant, seed = point
+    return f"{name} #{number} {task} {variant} seed {seed}"
+
+
 def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadline | None = None) -> None:
     """The campaign's grid points, trial after trial (with a ``deadline``, only those expected to end before it)."""
     total = len(campaign.grid)
 
     def announce(study: optuna.Study, trial: FrozenTrial) -> None:
-        task, variant, seed = grid_point(trial) or ("(no parameters)", "", "")
+        point = grid_point(trial) or ("(no parameters)", "", "")
         if trial.state == TrialState.COMPLETE:
             a = trial.user_attrs
             line = (f"max average return {a['max_average_return']:.1f}, final {a['final_return']:.1f}, "
@@ -229,7 +235,7 @@ def work_on(name: str, study: optuna.Study, campaign: Campaign, deadline: Deadli
                     f"(+{a['eval_cpu_seconds'] / 60:.1f} evaluating), {a['wall_seconds'] / 60:.1f} wall-min")  # fmt: skip
         else:
             line = trial.state.name
-        print(f"[{done(study, campaign)}/{total}] {name} #{trial.number} {task} {variant} seed {seed}: {line}", flush=True)
+        print(f"[{done(study, campaign)}/{total}] {trial_label(name, trial.number, point)}: {line}", flush=True)
 
     rng = random.Random()  # seeded from the OS: workers draw apart
     while pending(study, campaign):
